@@ -1,0 +1,34 @@
+# `make demo` and `make test` work on a fresh machine: they create .venv and install the project.
+PYTHON ?= python3
+VENV := .venv
+BIN := $(VENV)/bin
+STAMP := $(VENV)/.installed
+export MUJOCO_GL ?= egl
+
+.PHONY: demo test test-fast bench docs lint clean
+
+$(STAMP): pyproject.toml
+	test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
+	$(BIN)/python -m pip install --quiet -e ".[mujoco,vision,dev]"
+	touch $(STAMP)
+
+demo: $(STAMP)
+	$(BIN)/python -m cldyn demo
+
+lint: $(STAMP)
+	$(BIN)/ruff check cldyn keyvision tests benchmarks examples
+
+test: lint
+	$(BIN)/python -m pytest -q
+
+test-fast: $(STAMP)
+	$(BIN)/python -m pytest -q -m "not slow"
+
+bench: $(STAMP)
+	$(BIN)/python benchmarks/acceleration.py
+
+docs: $(STAMP)
+	$(BIN)/python -m cldyn --help
+
+clean:
+	rm -rf $(VENV) build dist *.egg-info

@@ -1,0 +1,61 @@
+"""cldyn: constrained Lagrangian dynamics in Cartesian keypoint coordinates.
+
+An implementation of the dynamics of KeyCLD (Daems et al., "Learning Constrained Lagrangian Dynamics
+in Keypoint Coordinates from Images") in JAX and Equinox.
+"""
+
+import importlib.metadata
+
+from . import systems as systems
+from ._constraint import (
+    AbstractConstraint as AbstractConstraint,
+    Anchor as Anchor,
+    Distance as Distance,
+    FixedCoordinate as FixedCoordinate,
+    FromFunction as FromFunction,
+    Stack as Stack,
+)
+from ._coordinates import (
+    AbstractCoordinate as AbstractCoordinate,
+    HingeAngle as HingeAngle,
+    JointMap as JointMap,
+    SliderPosition as SliderPosition,
+    wrap_angle as wrap_angle,
+)
+from ._dissipation import (
+    AbstractDissipation as AbstractDissipation,
+    DissipationSum as DissipationSum,
+    JointCoulomb as JointCoulomb,
+    JointDamping as JointDamping,
+    KeypointDrag as KeypointDrag,
+)
+from ._input import (
+    AbstractInputMatrix as AbstractInputMatrix,
+    ConstantInput as ConstantInput,
+    JointInput as JointInput,
+    MLPInput as MLPInput,
+)
+from ._mass import (
+    AbstractMass as AbstractMass,
+    ConstantMass as ConstantMass,
+    JointArmature as JointArmature,
+    PointMasses as PointMasses,
+    pivot_body_gravity as pivot_body_gravity,
+    pivot_body_mass as pivot_body_mass,
+    rigid_body_gravity as rigid_body_gravity,
+    rigid_body_mass as rigid_body_mass,
+)
+from ._potential import (
+    AbstractPotential as AbstractPotential,
+    Gravity as Gravity,
+    JointSpring as JointSpring,
+    MLPPotential as MLPPotential,
+    Spring as Spring,
+    Sum as Sum,
+)
+from ._system import ConstrainedLagrangian as ConstrainedLagrangian
+
+try:
+    __version__ = importlib.metadata.version("cldyn")
+except importlib.metadata.PackageNotFoundError:  # running from a source tree
+    __version__ = "0.0.0"

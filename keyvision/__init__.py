@@ -1,0 +1,1 @@
+"""keyvision: keypoint estimators and renderers that learn cldyn dynamics from images."""

@@ -1,0 +1,291 @@
+"""The constrained Euler-Lagrange equations (eq. 6) against independent mechanics."""
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from helpers import euler_lagrange_acceleration, keypoint_state, reference_systems
+
+import cldyn
+
+N_STATES = 100
+ACCEL_RTOL = 1e-9
+CONSTRAINT_TOL = 1e-10
+POWER_RTOL = 1e-10
+
+CASES = reference_systems()
+
+
+def _random_joint_states(key, m, num_inputs, n=N_STATES):
+    kq, kqd, ku = jax.random.split(key, 3)
+    q = jax.random.uniform(kq, (n, m), minval=-np.pi, maxval=np.pi)
+    qd = jax.random.normal(kqd, (n, m)) * 2.0
+    u = jax.random.normal(ku, (n, num_inputs))
+    return q, qd, u
+
+
+@pytest.mark.parametrize("name", sorted(CASES))
+def test_acceleration_matches_generalized_coordinates(name):
+    system, _, reference = CASES[name]
+    m = reference.n if hasattr(reference, "n") else 2
+    q, qd, u = _random_joint_states(jax.random.key(0), m, system.num_inputs)
+
+    @jax.jit
+    @jax.vmap
+    def compare(q, qd, u):
+        qdd = euler_lagrange_acceleration(reference, q, qd, u)
+        x, xd, xdd_ref = keypoint_state(reference, q, qd, qdd)
+        return system.acceleration(x, xd, u), xdd_ref
+
+    xdd, xdd_ref = compare(q, qd, u)
+    scale = jnp.max(jnp.abs(xdd_ref), axis=1, keepdims=True)
+    rel = np.asarray(jnp.max(jnp.abs(xdd - xdd_ref) / scale, axis=1))
+    assert rel.shape == (N_STATES,)
+    assert rel.max() < ACCEL_RTOL, f"{name}: worst relative error {rel.max():.2e}"
+
+
+def _keypoint_states(name, key):
+    system, _, reference = CASES[name]
+    m = reference.n if hasattr(reference, "n") else 2
+    q, qd, u = _random_joint_states(key, m, system.num_inputs)
+    x, xd = jax.vmap(lambda q, qd: keypoint_state(reference, q, qd))(q, qd)
+    return system, x, xd, u
+
+
+@pytest.mark.parametrize("name", sorted(CASES))
+def test_constraints_hold_to_second_order(name):
+    system, x, xd, u = _keypoint_states(name, jax.random.key(1))
+
+    @jax.vmap
+    def residual(x, xd, u):
+        xdd = system.acceleration(x, xd, u)
+        # second derivative of Phi along the motion, with the Hessian formed explicitly here
+        hess = jax.hessian(system.constraint)(x)
+        return system.constraint.jacobian(x) @ xdd + jnp.einsum("nij,i,j->n", hess, xd, xd)
+
+    assert float(jnp.max(jnp.abs(residual(x, xd, u)))) < CONSTRAINT_TOL
+
+
+@pytest.mark.parametrize("name", sorted(CASES))
+def test_constraint_force_does_no_work(name):
+    system, x, xd, u = _keypoint_states(name, jax.random.key(2))
+    force = jax.vmap(system.constraint_force)(x, xd, u)
+    power = jnp.sum(force * xd, axis=1)
+    scale = jnp.linalg.norm(force, axis=1) * jnp.linalg.norm(xd, axis=1)
+    assert float(jnp.max(jnp.abs(power) / scale)) < 1e-12
+    # and it is the force that closes the gap between M xdd and the other forces
+    xdd = jax.vmap(system.acceleration)(x, xd, u)
+    f = jax.vmap(system.generalized_force)(x, xd, u)
+    gap = jax.vmap(system.mass.matvec)(xdd) - f - force
+    assert float(jnp.max(jnp.abs(gap))) < 1e-9
+
+
+@pytest.mark.parametrize("name", sorted(CASES))
+def test_power_balance(name):
+    system, x, xd, u = _keypoint_states(name, jax.random.key(3))
+
+    @jax.vmap
+    def balance(x, xd, u):
+        xdd = system.acceleration(x, xd, u)
+        de_dt = jax.jvp(system.energy, (x, xd), (xd, xdd))[1]
+        return de_dt, jnp.dot(xd, system.input_matrix(x) @ u)
+
+    de_dt, input_power = balance(x, xd, u)
+    scale = jnp.maximum(jnp.abs(input_power), 1.0)
+    assert float(jnp.max(jnp.abs(de_dt - input_power) / scale)) < POWER_RTOL
+    assert np.allclose(jax.vmap(system.power)(x, xd, u), input_power, rtol=1e-12, atol=1e-12)
+
+
+def test_energy_is_conserved_without_inputs():
+    system, joints, _ = CASES["chain3"]
+    x, xd = joints.to_keypoints(jnp.array([0.3, -0.4, 1.0]), jnp.array([0.5, 0.1, -0.7]))
+    xdd = system.acceleration(x, xd, jnp.zeros(system.num_inputs))
+    assert abs(float(jax.jvp(system.energy, (x, xd), (xd, xdd))[1])) < 1e-12
+
+
+def test_redundant_constraint_gives_the_non_redundant_acceleration():
+    base, joints = cldyn.systems.acrobot()
+    twice = eqx.tree_at(
+        lambda s: s.constraint,
+        base,
+        cldyn.Stack([*base.constraint.constraints, cldyn.Distance(0, 1)]),
+    )
+    q, qd, u = _random_joint_states(jax.random.key(4), 2, 1, n=20)
+    x, xd = jax.vmap(joints.to_keypoints)(q, qd)
+    a_base = jax.vmap(base.acceleration)(x, xd, u)
+    a_twice = jax.vmap(twice.acceleration)(x, xd, u)
+    assert bool(jnp.all(jnp.isfinite(a_twice)))
+    assert np.allclose(a_twice, a_base, rtol=1e-8, atol=1e-10)
+    # least-squares multipliers share the duplicated constraint's load equally
+    lam_base = jax.vmap(base.multipliers)(x, xd, u)
+    lam_twice = jax.vmap(twice.multipliers)(x, xd, u)
+    assert bool(jnp.all(jnp.isfinite(lam_twice)))
+    assert np.allclose(lam_twice[:, 1], lam_twice[:, 2], rtol=1e-6, atol=1e-9)
+    assert np.allclose(lam_twice[:, 1] + lam_twice[:, 2], lam_base[:, 1], rtol=1e-6, atol=1e-9)
+    assert np.allclose(
+        jax.vmap(twice.constraint_force)(x, xd, u),
+        jax.vmap(base.constraint_force)(x, xd, u),
+        rtol=1e-6,
+        atol=1e-9,
+    )
+
+
+def test_multipliers_are_the_rod_tension():
+    # A point mass m on a massless rod of length L hanging at rest at angle theta, with
+    # angular velocity w: the rod pulls with m (g cos(theta) + L w^2) towards the pivot.
+    m, length, theta, w, g = 1.7, 0.9, 0.4, 1.3, 9.81
+    system, joints = cldyn.systems.pendulum(mass=m, length=length, gravity=g, actuated=False)
+    x, xd = joints.to_keypoints(jnp.array([theta]), jnp.array([w]))
+    lam = system.multipliers(x, xd)
+    assert np.isclose(float(lam[0]), -m * (g * np.cos(theta) + length * w**2), rtol=1e-12)
+
+
+def _four_bar_states(n, rng, ground=2.0, crank=0.5, coupler=2.0, rocker=1.5):
+    """Assembled four-bar states by circle intersection, with velocities tangent to the loop."""
+    phi = rng.uniform(-np.pi, np.pi, n)
+    b = crank * np.stack([np.cos(phi), np.sin(phi)], axis=1)
+    d = np.array([ground, 0.0])
+    dist = np.linalg.norm(d - b, axis=1, keepdims=True)
+    a = (coupler**2 - rocker**2 + dist**2) / (2 * dist)
+    h = np.sqrt(coupler**2 - a**2)
+    e = (d - b) / dist
+    c = b + a * e + h * np.stack([-e[:, 1], e[:, 0]], axis=1)
+    # the tangent direction: crank rate omega moves B by omega * perp(B); C follows from
+    # d/dt |C - B|^2 = 0 and d/dt |C - D|^2 = 0, a 2x2 linear system
+    omega = rng.normal(size=n) * 3.0
+    bd = omega[:, None] * np.stack([-b[:, 1], b[:, 0]], axis=1)
+    rows = np.stack([c - b, c - d], axis=1)
+    rhs = np.stack([np.sum((c - b) * bd, axis=1), np.zeros(n)], axis=1)
+    cd = np.linalg.solve(rows, rhs[..., None])[..., 0]
+    return np.concatenate([b, c], axis=1), np.concatenate([bd, cd], axis=1)
+
+
+def test_four_bar_loop_stays_closed_to_second_order():
+    system, joints = cldyn.systems.four_bar()
+    assert joints is None
+    rng = np.random.default_rng(0)
+    x, xd = map(jnp.asarray, _four_bar_states(200, rng))
+    u = jnp.asarray(rng.normal(size=(200, 1)))
+
+    @jax.jit
+    @jax.vmap
+    def residuals(x, xd, u):
+        xdd = system.acceleration(x, xd, u)
+        hess = jax.hessian(system.constraint)(x)
+        second = system.constraint.jacobian(x) @ xdd + jnp.einsum("nij,i,j->n", hess, xd, xd)
+        return second, system.constraint.velocity(x, xd), system.constraint(x)
+
+    second, first, phi = residuals(x, xd, u)
+    assert float(jnp.max(jnp.abs(first))) < 1e-12  # the states are consistent
+    assert np.allclose(phi, [0.5, 2.0, 1.5], rtol=1e-12)
+    assert float(jnp.max(jnp.abs(second))) < CONSTRAINT_TOL
+
+
+def test_vmap_equals_loop():
+    system, joints, _ = CASES["acrobot"]
+    q, qd, u = _random_joint_states(jax.random.key(5), 2, 2, n=1000)
+    x, xd = jax.vmap(joints.to_keypoints)(q, qd)
+    batched = eqx.filter_jit(jax.vmap(system.acceleration))(x, xd, u)
+    single = eqx.filter_jit(system.acceleration)
+    looped = np.stack([np.asarray(single(x[i], xd[i], u[i])) for i in range(1000)])
+    assert np.allclose(batched, looped, rtol=1e-12, atol=1e-12)
+
+
+def test_jit_traces_once_per_shape():
+    traces = []
+
+    @eqx.filter_jit
+    def accelerations(system, x, xd, u):
+        traces.append(x.shape)
+        return jax.vmap(system.acceleration)(x, xd, u)
+
+    system, joints, _ = CASES["acrobot"]
+    for seed in range(4):
+        q, qd, u = _random_joint_states(jax.random.key(seed), 2, 2, n=8)
+        x, xd = jax.vmap(joints.to_keypoints)(q, qd)
+        accelerations(system, x, xd, u)
+    assert traces == [(8, 4)]
+    q, qd, u = _random_joint_states(jax.random.key(9), 2, 2, n=16)
+    x, xd = jax.vmap(joints.to_keypoints)(q, qd)
+    accelerations(system, x, xd, u)
+    accelerations(system, x + 1e-3, xd, u)
+    assert traces == [(8, 4), (16, 4)]
+
+
+def test_gradients_of_every_learnable_parameter_are_finite():
+    key = jax.random.key(6)
+    k1, k2, k3 = jax.random.split(key, 3)
+    _, joints = cldyn.systems.acrobot()
+    learned = cldyn.ConstrainedLagrangian(
+        mass=cldyn.PointMasses(jnp.array([1.0, 0.7])),
+        potential=cldyn.MLPPotential(4, key=k1) + cldyn.Gravity.from_masses(jnp.ones(2)),
+        constraint=cldyn.Stack([cldyn.Anchor(0), cldyn.Distance(0, 1)]),
+        input_matrix=cldyn.MLPInput(4, 2, key=k2),
+        dissipation=cldyn.JointDamping([cldyn.HingeAngle(child=(None, 0))], 0.1),
+    )
+    analytic, _, _ = CASES["chain3"]
+    q, qd, u = _random_joint_states(k3, 2, 2, n=16)
+    x, xd = jax.vmap(joints.to_keypoints)(q, qd)
+
+    for system, (xs, xds, us) in (
+        (learned, (x, xd, u)),
+        (analytic, _chain3_states()),
+    ):
+
+        @eqx.filter_jit
+        @eqx.filter_grad
+        def grad(system):
+            acc = jax.vmap(system.acceleration)(xs, xds, us)
+            return jnp.mean(acc**2)
+
+        grads = grad(system)
+        leaves = jax.tree_util.tree_leaves(eqx.filter(grads, eqx.is_inexact_array))
+        params = jax.tree_util.tree_leaves(eqx.filter(system, eqx.is_inexact_array))
+        assert len(leaves) == len(params) > 0
+        assert all(bool(jnp.all(jnp.isfinite(g))) for g in leaves)
+        assert any(float(jnp.max(jnp.abs(g))) > 0 for g in leaves)
+
+
+def _chain3_states():
+    system, joints, _ = CASES["chain3"]
+    q, qd, u = _random_joint_states(jax.random.key(7), 3, system.num_inputs, n=16)
+    x, xd = jax.vmap(joints.to_keypoints)(q, qd)
+    return x, xd, u
+
+
+@pytest.mark.parametrize(
+    "args, message",
+    [
+        ((jnp.zeros(3), jnp.zeros(4), jnp.zeros(1)), r"x must have shape \(4,\), got \(3,\)"),
+        ((jnp.zeros(4), jnp.zeros((4, 1)), jnp.zeros(1)), r"xd must have shape \(4,\)"),
+        ((jnp.zeros(4), jnp.zeros(4), jnp.zeros(2)), r"u must have shape \(1,\), got \(2,\)"),
+    ],
+)
+def test_wrong_shapes_name_the_argument(args, message):
+    system, _ = cldyn.systems.acrobot()
+    with pytest.raises(ValueError, match=message):
+        system.acceleration(*args)
+    with pytest.raises(ValueError, match=message):
+        eqx.filter_jit(system.acceleration)(*args)
+
+
+def test_missing_control_means_zero():
+    system, joints = cldyn.systems.acrobot()
+    x, xd = joints.to_keypoints(jnp.array([0.2, 0.3]), jnp.array([0.1, 0.0]))
+    assert np.allclose(system.acceleration(x, xd), system.acceleration(x, xd, jnp.zeros(1)))
+
+
+def test_components_are_type_checked():
+    with pytest.raises(TypeError, match="potential"):
+        cldyn.ConstrainedLagrangian(mass=cldyn.PointMasses(jnp.ones(1)), potential=lambda x: x)
+
+
+def test_unconstrained_system_is_newton():
+    masses = jnp.array([2.0, 0.5])
+    system = cldyn.ConstrainedLagrangian(
+        mass=cldyn.PointMasses(masses), potential=cldyn.Gravity.from_masses(masses, g=9.81)
+    )
+    xdd = system.acceleration(jnp.zeros(4), jnp.ones(4))
+    assert np.allclose(xdd, [0, -9.81, 0, -9.81], rtol=1e-14)
+    assert system.multipliers(jnp.zeros(4), jnp.ones(4)).shape == (0,)
