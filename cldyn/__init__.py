@@ -35,6 +35,16 @@ from ._input import (
     JointInput as JointInput,
     MLPInput as MLPInput,
 )
+from ._integrate import (
+    RATTLE as RATTLE,
+    RK4 as RK4,
+    AbstractStabilisation as AbstractStabilisation,
+    Baumgarte as Baumgarte,
+    Projection as Projection,
+    Trajectory as Trajectory,
+    project_state as project_state,
+    simulate as simulate,
+)
 from ._mass import (
     AbstractMass as AbstractMass,
     ConstantMass as ConstantMass,

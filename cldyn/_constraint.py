@@ -20,8 +20,10 @@ from ._custom_types import ArrayInput, Vector
 class AbstractConstraint(eqx.Module):
     """A vector of holonomic constraints `Phi: R^k -> R^n`, conserved along the motion.
 
-    Subclasses implement `__call__` and `num_constraints`. The Jacobian and the curvature term are
-    derived by automatic differentiation.
+    Implementations provide `Phi(x)`, its Jacobian `DPhi(x)` and the curvature term
+    `<D2Phi(x), xd> xd`. The built-in constraints use closed forms (several times faster than
+    automatic differentiation in the integrator's inner loop); `FromFunction` derives both by
+    automatic differentiation of any user function.
     """
 
     @property
@@ -40,21 +42,45 @@ class AbstractConstraint(eqx.Module):
         **Returns:** the constraint values, shape `(n,)`.
         """
 
+    @abc.abstractmethod
     def jacobian(self, x: Vector) -> Float[Array, "n k"]:
         """The constraint Jacobian `DPhi(x)`, shape `(n, k)`."""
-        return jax.jacfwd(self.__call__)(x)
+
+    @abc.abstractmethod
+    def curvature(self, x: Vector, xd: Vector) -> Float[Array, " n"]:
+        """The curvature term `<D2Phi(x), xd> xd = d/dt (DPhi(x)) xd` of eq. 6, shape `(n,)`."""
 
     def velocity(self, x: Vector, xd: Vector) -> Float[Array, " n"]:
-        """The constraint velocity `d/dt Phi = DPhi(x) xd`, without forming `DPhi`."""
-        return jax.jvp(self.__call__, (x,), (xd,))[1]
+        """The constraint velocity `d/dt Phi = DPhi(x) xd`."""
+        return self.jacobian(x) @ xd
+
+
+class _AbstractAutodiffConstraint(AbstractConstraint):
+    """Derives the Jacobian and the curvature term from `__call__` by automatic differentiation."""
+
+    def jacobian(self, x: Vector) -> Float[Array, "n k"]:
+        return jax.jacfwd(self.__call__)(x)
 
     def curvature(self, x: Vector, xd: Vector) -> Float[Array, " n"]:
-        """The curvature term `<D2Phi(x), xd> xd = d/dt (DPhi(x)) xd` of eq. 6.
+        # The JVP along xd of x -> DPhi(x) xd: two forward passes, never the (n, k, k) Hessian.
+        tangent = lambda y: jax.jvp(self.__call__, (y,), (xd,))[1]
+        return jax.jvp(tangent, (x,), (xd,))[1]
 
-        Computed as the JVP along `xd` of `x -> DPhi(x) xd`: two forward passes, never the
-        `(n, k, k)` Hessian tensor.
-        """
-        return jax.jvp(lambda y: self.velocity(y, xd), (x,), (xd,))[1]
+
+def _row(k: int, dim: int, pieces: tuple[tuple[int, Array], ...], dtype) -> Array:
+    """A length-`k` row with the `dim`-vectors `pieces[(keypoint, value)]` placed at their keypoints."""
+    row = jnp.zeros(k, dtype=dtype)
+    for index, value in pieces:
+        row = row.at[dim * index : dim * (index + 1)].add(value)
+    return row
+
+
+def _distance_terms(delta: Array, rate: Array) -> tuple[Array, Array, Array]:
+    """`|d|`, the unit vector `d/|d|` and the curvature `(|dd|^2 - (u . dd)^2) / |d|` of `|d|`."""
+    length = jnp.sqrt(jnp.sum(delta**2))
+    unit = delta / length
+    along = jnp.dot(unit, rate)
+    return length, unit, (jnp.sum(rate**2) - along**2) / length
 
 
 def _point_slice(index: int, dim: int) -> slice:
@@ -108,9 +134,18 @@ class Distance(AbstractConstraint):
     def num_constraints(self) -> int:
         return 1
 
+    def _delta(self, v: Vector) -> Array:
+        return v[_point_slice(self.first, self.dim)] - v[_point_slice(self.second, self.dim)]
+
     def __call__(self, x: Vector) -> Float[Array, " 1"]:
-        delta = x[_point_slice(self.first, self.dim)] - x[_point_slice(self.second, self.dim)]
-        return jnp.sqrt(jnp.sum(delta**2))[None]
+        return jnp.sqrt(jnp.sum(self._delta(x) ** 2))[None]
+
+    def jacobian(self, x: Vector) -> Float[Array, "1 k"]:
+        _, unit, _ = _distance_terms(self._delta(x), self._delta(x))
+        return _row(x.shape[0], self.dim, ((self.first, unit), (self.second, -unit)), x.dtype)[None]
+
+    def curvature(self, x: Vector, xd: Vector) -> Float[Array, " 1"]:
+        return _distance_terms(self._delta(x), self._delta(xd))[2][None]
 
 
 class Anchor(AbstractConstraint):
@@ -139,9 +174,19 @@ class Anchor(AbstractConstraint):
     def num_constraints(self) -> int:
         return 1
 
+    def _delta(self, x: Vector) -> Array:
+        return x[_point_slice(self.keypoint, self.dim)] - jnp.asarray(self.point, dtype=x.dtype)
+
     def __call__(self, x: Vector) -> Float[Array, " 1"]:
-        delta = x[_point_slice(self.keypoint, self.dim)] - jnp.asarray(self.point)
-        return jnp.sqrt(jnp.sum(delta**2))[None]
+        return jnp.sqrt(jnp.sum(self._delta(x) ** 2))[None]
+
+    def jacobian(self, x: Vector) -> Float[Array, "1 k"]:
+        _, unit, _ = _distance_terms(self._delta(x), self._delta(x))
+        return _row(x.shape[0], self.dim, ((self.keypoint, unit),), x.dtype)[None]
+
+    def curvature(self, x: Vector, xd: Vector) -> Float[Array, " 1"]:
+        rate = xd[_point_slice(self.keypoint, self.dim)]
+        return _distance_terms(self._delta(x), rate)[2][None]
 
 
 class FixedCoordinate(AbstractConstraint):
@@ -171,6 +216,12 @@ class FixedCoordinate(AbstractConstraint):
 
     def __call__(self, x: Vector) -> Float[Array, " 1"]:
         return x[self.dim * self.keypoint + self.axis][None]
+
+    def jacobian(self, x: Vector) -> Float[Array, "1 k"]:
+        return jnp.zeros((1, x.shape[0]), dtype=x.dtype).at[0, self.dim * self.keypoint + self.axis].set(1)
+
+    def curvature(self, x: Vector, xd: Vector) -> Float[Array, " 1"]:
+        return jnp.zeros(1, dtype=x.dtype)
 
 
 class Stack(AbstractConstraint):
@@ -205,8 +256,18 @@ class Stack(AbstractConstraint):
             return jnp.zeros(0, dtype=x.dtype)
         return jnp.concatenate([c(x) for c in self.constraints])
 
+    def jacobian(self, x: Vector) -> Float[Array, "n k"]:
+        if not self.constraints:
+            return jnp.zeros((0, x.shape[0]), dtype=x.dtype)
+        return jnp.concatenate([c.jacobian(x) for c in self.constraints], axis=0)
 
-class FromFunction(AbstractConstraint):
+    def curvature(self, x: Vector, xd: Vector) -> Float[Array, " n"]:
+        if not self.constraints:
+            return jnp.zeros(0, dtype=x.dtype)
+        return jnp.concatenate([c.curvature(x, xd) for c in self.constraints])
+
+
+class FromFunction(_AbstractAutodiffConstraint):
     """Any user-supplied constraint function `Phi(x)`.
 
     **Arguments:**

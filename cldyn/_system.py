@@ -9,7 +9,7 @@ from ._constraint import AbstractConstraint
 from ._custom_types import ArrayInput, Scalar, Vector
 from ._dissipation import AbstractDissipation
 from ._input import AbstractInputMatrix
-from ._linalg import psd_solve
+from ._linalg import small_solve
 from ._mass import AbstractMass, JointArmature
 from ._potential import AbstractPotential
 
@@ -111,11 +111,8 @@ class ConstrainedLagrangian(eqx.Module):
         x = check_array("x", x, (k,))
         if need_velocity:
             xd = check_array("xd", xd, (k,))
-        if need_control:
-            if u is None:
-                u = jnp.zeros(num_inputs, dtype=x.dtype)
-            else:
-                u = check_array("u", u, (num_inputs,))
+        if need_control and u is not None:
+            u = check_array("u", u, (num_inputs,))
         return x, xd, u
 
     # -- energies --------------------------------------------------------------------------
@@ -152,7 +149,7 @@ class ConstrainedLagrangian(eqx.Module):
 
     def _external_force(self, x, xd, u) -> Vector:
         force = jnp.zeros_like(x)
-        if self.input_matrix is not None and self.num_inputs > 0:
+        if u is not None and self.input_matrix is not None and self.num_inputs > 0:
             force = force + self.input_matrix(x) @ u
         if self.dissipation is not None:
             force = force + self.dissipation(x, xd)
@@ -184,7 +181,7 @@ class ConstrainedLagrangian(eqx.Module):
         scaled = grads * root
         minv_scaled = self.mass.solve(scaled)
         capacitance = jnp.eye(scaled.shape[1]) + scaled.T @ minv_scaled
-        return base - minv_scaled @ psd_solve(capacitance, scaled.T @ base)
+        return base - minv_scaled @ small_solve(capacitance, scaled.T @ base)
 
     def _terms(self, x, xd, u):
         """`(M^-1 f, M^-1 DPhi^T, DPhi, curvature)`."""
@@ -203,16 +200,27 @@ class ConstrainedLagrangian(eqx.Module):
 
         - `x`: keypoint positions, shape `(k,)`.
         - `xd`: keypoint velocities, shape `(k,)`.
-        - `u`: controls, shape `(l,)`; zero if omitted.
+        - `u`: controls, shape `(l,)`; no input force if omitted.
 
         **Returns:** the keypoint accelerations, shape `(k,)`.
         """
         x, xd, u = self._state(x, xd, u)
+        return self._acceleration(x, xd, u, None)
+
+    def _acceleration(self, x, xd, u, target: Array | None) -> Vector:
+        """Eq. 6, with the constraint acceleration `DPhi xdd` driven to `-curvature + target`.
+
+        `target = None` (zero) is the exact constrained motion; stabilisation schemes such as
+        Baumgarte's pass a feedback on the constraint drift.
+        """
         if self.num_constraints == 0:
             f = self._force(x, xd, u)
             return self._mass_solve(x, f[:, None])[:, 0]
         minv_f, minv_jt, jac, curvature = self._terms(x, xd, u)
-        lam = -psd_solve(jac @ minv_jt, jac @ minv_f + curvature)
+        rhs = jac @ minv_f + curvature
+        if target is not None:
+            rhs = rhs - target
+        lam = -small_solve(jac @ minv_jt, rhs)
         return minv_f + minv_jt @ lam
 
     def multipliers(self, x: ArrayInput, xd: ArrayInput, u: ArrayInput | None = None) -> Float[Array, " n"]:
