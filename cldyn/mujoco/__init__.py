@@ -1,0 +1,10 @@
+"""The MuJoCo bridge: record trajectories from MJCF scenes, turn planar MJCF models into cldyn systems,
+KeyCLD's scene variants, and validation of the one against the other.
+
+Needs the `mujoco` extra (`pip install cldyn[mujoco]`); `import cldyn` never imports it.
+"""
+
+from ._bridge import MujocoModel as MujocoModel, from_mjcf as from_mjcf
+from ._record import Recording as Recording, record as record
+from ._scenes import keycld_scene as keycld_scene, scene_xml as scene_xml
+from ._validate import validate as validate
