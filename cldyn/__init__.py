@@ -63,7 +63,10 @@ from ._potential import (
     Spring as Spring,
     Sum as Sum,
 )
-from ._system import ConstrainedLagrangian as ConstrainedLagrangian
+from ._system import (
+    AbstractDynamics as AbstractDynamics,
+    ConstrainedLagrangian as ConstrainedLagrangian,
+)
 
 try:
     __version__ = importlib.metadata.version("cldyn")

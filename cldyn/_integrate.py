@@ -28,7 +28,7 @@ from jaxtyping import Array, Float
 
 from ._custom_types import ArrayInput, Vector
 from ._linalg import SmallDense
-from ._system import ConstrainedLagrangian, check_array
+from ._system import AbstractDynamics, ConstrainedLagrangian, check_array
 
 # A state is "clearly" inconsistent beyond this violation, relative to its own scale.
 _CONSISTENCY_RTOL = 1e-6
@@ -380,10 +380,14 @@ def _vector_field(stabilisation):
         x, xd = y
         u = control(t, x, xd)
         target = None
-        if isinstance(stabilisation, Baumgarte) and system.num_constraints > 0:
+        if isinstance(stabilisation, Baumgarte) and isinstance(system, ConstrainedLagrangian) and (
+            system.num_constraints > 0
+        ):
             drift = system.constraint(x) - reference
             rate = system.constraint.velocity(x, xd)
             target = -2 * stabilisation.alpha * rate - stabilisation.beta**2 * drift
+        if target is None:
+            return xd, system.acceleration(x, xd, u)
         return xd, system._acceleration(x, xd, u, target)
 
     return field
@@ -413,7 +417,7 @@ def _check_inputs(system, x0, xd0, ts, reference, project: bool):
         bad = np.flatnonzero(~np.isfinite(np.asarray(value)))
         if bad.size:
             raise ValueError(f"{name} contains NaN or infinite values at indices {bad.tolist()}")
-    if project or system.num_constraints == 0:
+    if project or not isinstance(system, ConstrainedLagrangian) or system.num_constraints == 0:
         return
     if reference is not None:
         drift = float(np.max(np.abs(np.asarray(system.constraint(x0)) - np.asarray(reference))))
@@ -437,7 +441,7 @@ _DEFAULT = Projection()
 
 
 def simulate(
-    system: ConstrainedLagrangian,
+    system: AbstractDynamics,
     x0: ArrayInput,
     xd0: ArrayInput,
     ts: ArrayInput,
@@ -460,7 +464,7 @@ def simulate(
 
     **Arguments:**
 
-    - `system`: the `ConstrainedLagrangian`.
+    - `system`: the `ConstrainedLagrangian`, or any other `AbstractDynamics` (a baseline).
     - `x0`, `xd0`: initial positions and velocities, shape `(k,)`. The velocity must satisfy the
       constraints (`DPhi(x0) xd0 = 0`); an initial state that clearly does not is refused with an
       error that says how far off it is, unless `project=True`.
@@ -491,8 +495,11 @@ def simulate(
                               solver=cldyn.RK4(), dt0=0.01)
         ```
     """
-    if not isinstance(system, ConstrainedLagrangian):
-        raise TypeError(f"system must be a ConstrainedLagrangian, got {type(system).__name__}")
+    if not isinstance(system, AbstractDynamics):
+        raise TypeError(
+            "system must be a ConstrainedLagrangian (or another AbstractDynamics), "
+            f"got {type(system).__name__}"
+        )
     if stabilisation is not None and not isinstance(stabilisation, AbstractStabilisation):
         raise TypeError("stabilisation must be Projection(), Baumgarte(alpha, beta) or None")
     x0 = check_array("x0", x0, (system.size,))
@@ -504,6 +511,8 @@ def simulate(
     if reference is not None:
         reference = check_array("reference", reference, (system.num_constraints,))
     solver = dfx.Tsit5() if solver is None else solver
+    if isinstance(solver, RATTLE) and not isinstance(system, ConstrainedLagrangian):
+        raise ValueError("RATTLE needs a ConstrainedLagrangian (a mass matrix and forces)")
     if isinstance(solver, RATTLE) and system.armature is not None:
         raise ValueError("RATTLE needs a constant mass matrix; use an RK solver with Projection()")
     if isinstance(solver, RATTLE) and isinstance(stabilisation, Baumgarte):
@@ -559,7 +568,7 @@ def _simulate(
     system, x0, xd0, ts, reference, control, *, solver, stabilisation, adaptive, grid, dt0, rtol,
     atol, max_steps, project, adjoint,
 ):
-    constrained = system.num_constraints > 0
+    constrained = isinstance(system, ConstrainedLagrangian) and system.num_constraints > 0
     if constrained:
         if project:
             x0, xd0 = project_state(system, x0, xd0, reference=reference)

@@ -1,5 +1,7 @@
 """The constrained Euler-Lagrange equations in keypoint coordinates (KeyCLD eq. 6, appendix A.1)."""
 
+import abc
+
 import equinox as eqx
 import jax.numpy as jnp
 import lineax as lx
@@ -26,7 +28,34 @@ def check_array(name: str, value, shape: tuple[int, ...]) -> Array:
     return array
 
 
-class ConstrainedLagrangian(eqx.Module):
+class AbstractDynamics(eqx.Module):
+    """Anything that gives keypoint accelerations `xdd(x, xd, u)`: what `simulate`, the losses and
+    the evaluation tools need. `ConstrainedLagrangian` is the physical model; the baselines
+    (for example `SecondOrderNeuralODE`) implement the same interface.
+    """
+
+    @property
+    @abc.abstractmethod
+    def size(self) -> int:
+        """The number `k` of keypoint coordinates."""
+
+    @property
+    @abc.abstractmethod
+    def num_inputs(self) -> int:
+        """The number `l` of controls."""
+
+    @property
+    @abc.abstractmethod
+    def num_constraints(self) -> int:
+        """The number `n` of holonomic constraints (0 for unconstrained models)."""
+
+    @abc.abstractmethod
+    def acceleration(self, x: ArrayInput, xd: ArrayInput, u: ArrayInput | None = None) -> Vector:
+        """The keypoint accelerations, shape `(k,)`, for positions and velocities `(k,)` and controls
+        `(l,)` (no input force if `None`)."""
+
+
+class ConstrainedLagrangian(AbstractDynamics):
     """A mechanical system in keypoint coordinates with holonomic constraints.
 
     The Lagrangian is $L(x, \\dot x) = \\tfrac12 \\dot x^T M \\dot x - V(x)$ with a constant mass matrix
