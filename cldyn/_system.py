@@ -207,7 +207,7 @@ class ConstrainedLagrangian(AbstractDynamics):
             return base
         grads = self.armature.gradients(x)
         root = jnp.sqrt(jnp.maximum(self.armature.armature, 0.0))
-        scaled = grads * root
+        scaled = grads * root[None, :]
         minv_scaled = self.mass.solve(scaled)
         capacitance = jnp.eye(scaled.shape[1]) + scaled.T @ minv_scaled
         return base - minv_scaled @ small_solve(capacitance, scaled.T @ base)
