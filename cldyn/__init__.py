@@ -15,6 +15,7 @@ from ._constraint import (
     FromFunction as FromFunction,
     Stack as Stack,
 )
+from ._control import EnergyShaping as EnergyShaping
 from ._coordinates import (
     AbstractCoordinate as AbstractCoordinate,
     HingeAngle as HingeAngle,
