@@ -472,7 +472,9 @@ def simulate_mujoco(
 def _integrator(model, integrator: str | None) -> None:
     if integrator is None:
         return
-    names = {m.name.removeprefix("mjINT_").lower(): m for m in mujoco.mjtIntegrator}
+    names = {
+        key.removeprefix("mjINT_").lower(): value for key, value in mujoco.mjtIntegrator.__members__.items()
+    }
     key = integrator.lower()
     if key not in names:
         raise ValueError(f"unknown integrator {integrator!r}; choose one of {sorted(names)}")

@@ -146,7 +146,7 @@ def validate(
         drift = jnp.zeros(())
         if system.constraint is not None:
             phi = jax.vmap(system.constraint)(trajectory.x)
-            drift = jnp.max(jnp.abs(phi - phi[0]))
+            drift = jnp.max(jnp.abs(phi - phi[:1]))
         return trajectory.x, trajectory.xd, drift
 
     u = jnp.asarray(controls)

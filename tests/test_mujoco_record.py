@@ -1,0 +1,226 @@
+"""`record`: what MuJoCo did, saved and loaded, and consistent with itself."""
+
+import json
+
+import numpy as np
+import pytest
+
+mujoco = pytest.importorskip("mujoco")
+
+from cldyn._cli import main  # noqa: E402
+from cldyn.mujoco import Recording, record  # noqa: E402
+
+EQUATION_ATOL = 1e-8  # M qacc + qfrc_bias = qfrc_actuator + qfrc_passive + qfrc_constraint
+DIFFERENCE_RTOL = 1e-4  # keypoint velocities and accelerations against finite differences
+
+
+def _model(recording: Recording) -> mujoco.MjModel:
+    return mujoco.MjModel.from_xml_string(recording.mjcf_xml)
+
+
+def _equation_residual(recording: Recording) -> float:
+    """`M(q) qacc + qfrc_bias - (actuator + passive + constraint)`, with `M` from MuJoCo."""
+    model = _model(recording)
+    data = mujoco.MjData(model)
+    mass = np.zeros((model.nv, model.nv))
+    worst = 0.0
+    for r in range(recording.num_runs):
+        for s in range(recording.num_samples):
+            data.qpos[:] = recording.qpos[r, s]
+            mujoco.mj_forward(model, data)
+            mujoco.mj_fullM(model, data, mass)
+            lhs = mass @ recording.qacc[r, s] + recording.qfrc_bias[r, s]
+            rhs = (
+                recording.qfrc_actuator[r, s] + recording.qfrc_passive[r, s] + recording.qfrc_constraint[r, s]
+            )
+            worst = max(worst, float(np.max(np.abs(lhs - rhs))))
+    return worst
+
+
+@pytest.mark.parametrize("mjcf", ["keycld/acrobot", "cartpole", "pendulum"])
+def test_recorded_forces_are_consistent(mjcf):
+    # the stock cartpole runs into its rail limit: a constraint force that must balance too
+    recording = record(
+        mjcf, runs=4, duration=2.0, dt=0.05, seed=3, control=1.0 if mjcf == "cartpole" else "random"
+    )
+    if mjcf == "cartpole":
+        assert np.any(recording.qfrc_constraint != 0)
+    assert _equation_residual(recording) < EQUATION_ATOL
+
+
+def test_schema_and_protocol():
+    recording = record("keycld/cartpole", runs=50, duration=0.1, dt=0.01, seed=7)
+    runs, samples = 50, 11
+    assert recording.time.shape == (samples,)
+    np.testing.assert_allclose(recording.time, np.arange(samples) * 0.01)
+    assert recording.qpos.shape == (runs, samples, 2) and recording.qacc.shape == (runs, samples, 2)
+    assert recording.x.shape == recording.xdd.shape == (runs, samples, 4)
+    assert recording.u.shape == (runs, samples, 2)
+    assert recording.keypoint_names == ("slider+hinge_1", "pole_1_end")
+    assert recording.joint_names == ("slider", "hinge_1") and recording.actuator_names == ("slide", "hinge_1")
+    assert recording.keypoint_dim == 2 and recording.integrator == "RK4"
+    # KeyCLD's protocol: constant controls in (-2, 2) (no control range in these scenes), zero in 20%
+    assert np.all(recording.u == recording.u[:, :1])
+    zero = np.all(recording.u[:, 0] == 0, axis=1)
+    assert zero.sum() == 10
+    assert np.all(np.abs(recording.u[~zero]) < 2) and np.all(recording.u[~zero] != 0)
+    assert np.all(np.abs(recording.qpos[:, 0, 0]) <= 1) and np.all(np.abs(recording.qpos[:, 0, 1]) <= np.pi)
+    assert np.all(np.abs(recording.qvel[:, 0]) <= 0.1)
+    assert np.array_equal(recording.x, recording.x_clean)
+
+
+def test_control_forms_and_clamping():
+    qpos = np.array([0.2, -0.3])
+    start = (qpos, np.zeros(2))
+    policy = record("cartpole", duration=0.05, dt=0.01, initial=start, control=lambda t, q, v: [-5.0 * q[0]])
+    # the stock cartpole clamps its control to [-1, 1]: what was applied is recorded
+    np.testing.assert_allclose(policy.u[0, 0], [-1.0])
+    np.testing.assert_allclose(policy.qfrc_actuator[0, 0, 0], -10.0)  # gear 10
+    series = np.linspace(-0.5, 0.5, 6)[None, :, None]
+    timed = record("cartpole", duration=0.05, dt=0.01, initial=start, control=series)
+    np.testing.assert_allclose(timed.u[0, :, 0], series[0, :, 0])
+    per_run = record("keycld/acrobot", duration=0.02, dt=0.01, control=[[0.1, 0.2], [0.3, 0.4]], seed=1)
+    assert per_run.num_runs == 2
+    np.testing.assert_allclose(per_run.u[1, -1], [0.3, 0.4])
+    zero = record("keycld/acrobot", duration=0.02, dt=0.01, control=None)
+    assert not np.any(zero.u) and not np.any(zero.qfrc_actuator)
+    with pytest.raises(ValueError, match="control must have shape"):
+        record("keycld/acrobot", duration=0.02, dt=0.01, control=np.zeros((1, 7, 2)))
+
+
+def test_noise_seed_and_substeps():
+    clean = record("keycld/pendulum", runs=20, duration=0.2, dt=0.02, seed=5)
+    noisy = record("keycld/pendulum", runs=20, duration=0.2, dt=0.02, seed=5, noise=0.01)
+    np.testing.assert_array_equal(noisy.x_clean, clean.x_clean)
+    assert np.std(noisy.x - noisy.x_clean) == pytest.approx(0.01, rel=0.1)
+    other = record("keycld/pendulum", runs=20, duration=0.2, dt=0.02, seed=6)
+    assert not np.allclose(other.qpos[:, 0], clean.qpos[:, 0])
+    fine = record("keycld/pendulum", runs=2, duration=0.2, dt=0.02, physics_dt=0.005, integrator="rk4")
+    assert fine.physics_dt == 0.005 and fine.integrator == "RK4"
+    with pytest.raises(ValueError, match="whole multiple"):
+        record("keycld/pendulum", duration=0.2, dt=0.02, physics_dt=0.003)
+
+
+def test_keypoint_derivatives_match_finite_differences():
+    """MuJoCo's own consistency: `xd` and `J qacc + Jdot qvel` against differences of the samples."""
+    dt = 1e-3
+    recording = record(
+        "keycld/acrobot", runs=2, duration=0.2, dt=dt, physics_dt=1e-4, integrator="rk4", seed=2
+    )
+    velocity = (recording.x[:, 2:] - recording.x[:, :-2]) / (2 * dt)
+    acceleration = (recording.xd[:, 2:] - recording.xd[:, :-2]) / (2 * dt)
+    scale_v, scale_a = np.abs(recording.xd).max(), np.abs(recording.xdd).max()
+    assert np.abs(velocity - recording.xd[:, 1:-1]).max() < DIFFERENCE_RTOL * scale_v
+    assert np.abs(acceleration - recording.xdd[:, 1:-1]).max() < DIFFERENCE_RTOL * scale_a
+
+
+def test_save_load(tmp_path):
+    recording = record("keycld/acrobot", runs=3, duration=0.05, dt=0.01, noise=0.001, seed=11)
+    path = recording.save(tmp_path / "acrobot")
+    assert path.name == "acrobot.npz"
+    loaded = Recording.load(path)
+    for field in ("time", "qpos", "qvel", "qacc", "x", "x_clean", "xd", "xdd", "u", "qfrc_bias", "basis"):
+        np.testing.assert_array_equal(getattr(loaded, field), getattr(recording, field))
+    for field in (
+        "keypoint_names",
+        "joint_names",
+        "actuator_names",
+        "mjcf",
+        "mjcf_xml",
+        "dt",
+        "noise",
+        "seed",
+    ):
+        assert getattr(loaded, field) == getattr(recording, field)
+    mujoco.MjModel.from_xml_string(loaded.mjcf_xml)  # the scene travels with the data
+
+    corrupt = tmp_path / "corrupt.npz"
+    corrupt.write_bytes(b"not a zip file")
+    with pytest.raises(ValueError, match="corrupt.npz: not a readable .npz file"):
+        Recording.load(corrupt)
+    foreign = tmp_path / "foreign.npz"
+    np.savez(foreign, a=np.zeros(3))
+    with pytest.raises(ValueError, match="foreign.npz: not a cldyn recording"):
+        Recording.load(foreign)
+    with np.load(path) as npz:
+        contents = dict(npz)
+    metadata = json.loads(str(contents["metadata"]))
+    np.savez(
+        tmp_path / "old.npz", **{**contents, "metadata": np.array(json.dumps({**metadata, "schema": "v0"}))}
+    )
+    with pytest.raises(ValueError, match="old.npz: schema 'v0'"):
+        Recording.load(tmp_path / "old.npz")
+    del contents["xdd"]
+    np.savez(tmp_path / "partial.npz", **contents)
+    with pytest.raises(ValueError, match=r"partial.npz: missing arrays \['xdd'\]"):
+        Recording.load(tmp_path / "partial.npz")
+    contents["xdd"] = np.zeros((3, 6, 5))
+    np.savez(tmp_path / "shape.npz", **contents)
+    with pytest.raises(ValueError, match=r"shape.npz: xdd has shape \(3, 6, 5\), expected \(3, 6, 4\)"):
+        Recording.load(tmp_path / "shape.npz")
+    with pytest.raises(FileNotFoundError, match="nothing.npz"):
+        Recording.load(tmp_path / "nothing.npz")
+
+
+def test_non_planar_models_record_world_keypoints():
+    xml = """<mujoco><worldbody><body pos="0 0 1"><joint name="ball" type="ball"/>
+      <geom type="capsule" fromto="0 0 0 0.3 0 -1" size=".05"/></body></worldbody></mujoco>"""
+    recording = record(xml, runs=2, duration=0.02, dt=0.01, initial=None)
+    assert recording.keypoint_dim == 3 and recording.basis.shape == (0, 3)
+    assert recording.x.shape == (2, 3, 3) and recording.qpos.shape == (2, 3, 4)
+    np.testing.assert_allclose(recording.x[0, 0], [0.3, 0.0, 0.0], atol=1e-12)
+
+
+def test_command_line(tmp_path, capsys):
+    out = tmp_path / "data.npz"
+    assert (
+        main(
+            [
+                "record",
+                "--mjcf",
+                "keycld/pendulum",
+                "--out",
+                str(out),
+                "--runs",
+                "5",
+                "--duration",
+                "0.1",
+                "--dt",
+                "0.02",
+                "--noise",
+                "0.01",
+                "--seed",
+                "3",
+            ]
+        )
+        == 0
+    )
+    recording = Recording.load(out)
+    assert recording.num_runs == 5 and recording.num_samples == 6 and recording.seed == 3
+    assert recording.noise == 0.01
+    assert "wrote" in capsys.readouterr().out
+
+    report_dir = tmp_path / "validation"
+    status = main(
+        [
+            "validate",
+            "--mjcf",
+            "keycld/pendulum",
+            "--out",
+            str(report_dir),
+            "--runs",
+            "2",
+            "--duration",
+            "0.2",
+            "--physics-dt",
+            "1e-3",
+            "--tolerance",
+            "1e-6",
+        ]
+    )
+    assert status == 0
+    report = json.loads((report_dir / "validation.json").read_text())
+    assert report["duration"] == 0.2 and report["max_position_error"] < 1e-6
+    assert (report_dir / "keypoint_error.png").stat().st_size > 0
+    assert main(["record", "--mjcf", "no_such_file.xml", "--out", str(out)]) == 2
+    assert "MJCF file not found: no_such_file.xml" in capsys.readouterr().err
