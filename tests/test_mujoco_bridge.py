@@ -339,3 +339,29 @@ def test_trajectories_match_mujoco(name, tmp_path):
 def test_nominal_trajectories_drift_from_damped_mujoco():
     report = validate("acrobot", runs=2, duration=1.0, physics_dt=1e-3)
     assert report["max_position_error"] > 1e-3
+
+
+def test_mass_equals_the_rigid_body_blocks():
+    """For the acrobot the frame construction gives cldyn's pivot and two-keypoint rigid-body blocks."""
+    bridge = from_mjcf("keycld/acrobot")
+    model = load_model("keycld/acrobot")[0]
+    data = mujoco.MjData(model)
+    mujoco.mj_kinematics(model, data)
+    basis = np.asarray(bridge.basis)
+
+    def body(name):
+        b = model.body(name).id
+        rotation = data.ximat[b].reshape(3, 3)
+        inertia = (rotation.T @ [0, 1, 0]) @ (model.body_inertia[b] * (rotation.T @ [0, 1, 0]))
+        return model.body_mass[b], inertia, basis @ data.xipos[b]
+
+    shoulder, elbow, tip = (basis @ p for p in (data.xanchor[0], data.xanchor[1], data.site("tip").xpos))
+    upper, lower = body("upper_arm"), body("lower_arm")
+    expected = cldyn.ConstantMass.from_blocks(
+        [
+            ((0,), cldyn.pivot_body_mass(*upper, pivot=shoulder, point=elbow)),
+            ((0, 1), cldyn.rigid_body_mass(*lower, points=np.stack([elbow, tip]))),
+        ],
+        num_keypoints=2,
+    )
+    np.testing.assert_allclose(bridge.system.mass.matrix(), expected.matrix(), rtol=1e-12, atol=1e-14)

@@ -199,7 +199,7 @@ def scene_xml(mjcf: "str | os.PathLike") -> str:
     if _looks_like_xml(mjcf):
         ET.fromstring(mjcf)  # a clear parse error now rather than a MuJoCo one later
         return mjcf
-    if os.path.exists(mjcf):
+    if os.path.isfile(mjcf):
         return _file_text(pathlib.Path(mjcf))
     if mjcf.startswith(_KEYCLD_PREFIX):
         return keycld_scene(mjcf)
@@ -232,7 +232,7 @@ def _file_text(path: pathlib.Path) -> str:
 def load_model(mjcf: "str | os.PathLike") -> tuple[mujoco.MjModel, str, str]:
     """Compile a scene: `(model, xml_text, source)`, where `source` names where it came from."""
     if isinstance(mjcf, os.PathLike) or (
-        isinstance(mjcf, str) and not _looks_like_xml(mjcf) and os.path.exists(mjcf)
+        isinstance(mjcf, str) and not _looks_like_xml(mjcf) and os.path.isfile(mjcf)
     ):
         path = pathlib.Path(mjcf)
         text = scene_xml(path)

@@ -6,6 +6,7 @@ import pathlib
 import time
 from collections.abc import Sequence
 
+import mujoco
 import numpy as np
 
 from ._record import _control_range, prepare, random_initial_states, simulate_mujoco
@@ -25,7 +26,9 @@ def _plot(path: pathlib.Path, ts: np.ndarray, errors: np.ndarray, title: str) ->
     fig, ax = plt.subplots(figsize=(7, 4))
     for run in errors:
         ax.semilogy(ts, np.maximum(run, floor), color="tab:blue", alpha=0.35, linewidth=0.8)
-    ax.semilogy(ts, np.maximum(errors.max(axis=0), floor), color="black", linewidth=1.6, label="worst run")
+    ax.semilogy(
+        ts, np.maximum(errors.max(axis=0), floor), color="black", linewidth=1.6, label="max over runs"
+    )
     ax.set_xlabel("time (s)")
     ax.set_ylabel("keypoint position error (m)")
     ax.set_title(title, fontsize=9)
@@ -100,7 +103,7 @@ def validate(
     if not joint_limits:
         model.jnt_limited[:] = 0
     model.opt.timestep = physics_dt
-    model.opt.integrator = 1  # mjINT_RK4
+    model.opt.integrator = mujoco.mjtIntegrator.mjINT_RK4
     substeps = int(round(dt / physics_dt))
     if substeps < 1 or abs(substeps * physics_dt - dt) > 1e-9 * dt:
         raise ValueError(f"dt={dt} must be a whole multiple of physics_dt={physics_dt}")
