@@ -30,6 +30,16 @@ from ._dissipation import (
     JointDamping as JointDamping,
     KeypointDrag as KeypointDrag,
 )
+from ._identify import (
+    EFFECTS as EFFECTS,
+    Candidate as Candidate,
+    Criteria as Criteria,
+    Detection as Detection,
+    Identification as Identification,
+    Smoothing as Smoothing,
+    augment as augment,
+    identify as identify,
+)
 from ._input import (
     AbstractInputMatrix as AbstractInputMatrix,
     ConstantInput as ConstantInput,
@@ -46,6 +56,7 @@ from ._integrate import (
     project_state as project_state,
     simulate as simulate,
 )
+
 from ._mass import (
     AbstractMass as AbstractMass,
     ConstantMass as ConstantMass,
@@ -56,6 +67,7 @@ from ._mass import (
     rigid_body_gravity as rigid_body_gravity,
     rigid_body_mass as rigid_body_mass,
 )
+
 from ._potential import (
     AbstractPotential as AbstractPotential,
     Gravity as Gravity,

@@ -200,6 +200,30 @@ class ConstrainedLagrangian(AbstractDynamics):
             force = force + self.armature.bias(x, xd)
         return force
 
+    def inverse_dynamics(
+        self, x: ArrayInput, xd: ArrayInput, xdd: ArrayInput, u: ArrayInput | None = None
+    ) -> Vector:
+        """The force `M(x) xdd - f(x, xd, u)` that the motion `xdd` needs beyond the modelled forces.
+
+        For a motion that the model explains, this is the constraint force `DPhi^T lambda`, which has no
+        component along the constraint manifold; what it has along the manifold is what the model
+        misses (see `cldyn.identify`).
+
+        **Arguments:**
+
+        - `x`, `xd`, `xdd`: positions, velocities and accelerations, shape `(k,)`.
+        - `u`: controls, shape `(l,)`; no input force if omitted.
+
+        **Returns:** shape `(k,)`.
+        """
+        x, xd, u = self._state(x, xd, u)
+        xdd = check_array("xdd", xdd, (self.size,))
+        inertial = self.mass.matvec(xdd)
+        if self.armature is not None:
+            grads = self.armature.gradients(x)
+            inertial = inertial + grads @ (self.armature.armature * (grads.T @ xdd))
+        return inertial - self._force(x, xd, u)
+
     def _mass_solve(self, x: Vector, rhs: Float[Array, "k m"]) -> Float[Array, "k m"]:
         """`M(x)^-1 rhs`; with armature, by the Woodbury identity around the constant `M`."""
         base = self.mass.solve(rhs)
