@@ -7,6 +7,14 @@ in Keypoint Coordinates from Images") in JAX and Equinox.
 import importlib.metadata
 
 from . import systems as systems
+
+# -- learning dynamics from keypoint states (issue 5) --------------------------------------------
+from ._baselines import (
+    CoupledMasses as CoupledMasses,
+    SecondOrderNeuralODE as SecondOrderNeuralODE,
+    keycld_constraint as keycld_constraint,
+    keycld_model as keycld_model,
+)
 from ._constraint import (
     AbstractConstraint as AbstractConstraint,
     Anchor as Anchor,
@@ -56,7 +64,20 @@ from ._integrate import (
     project_state as project_state,
     simulate as simulate,
 )
-
+from ._learn import (
+    AbstractLoss as AbstractLoss,
+    CheckpointError as CheckpointError,
+    Collocation as Collocation,
+    FitResult as FitResult,
+    InverseDynamics as InverseDynamics,
+    LossSum as LossSum,
+    MultipleShooting as MultipleShooting,
+    NonFiniteLossError as NonFiniteLossError,
+    Rollout as Rollout,
+    Sequences as Sequences,
+    central_difference as central_difference,
+    fit as fit,
+)
 from ._mass import (
     AbstractMass as AbstractMass,
     ConstantMass as ConstantMass,
@@ -67,7 +88,16 @@ from ._mass import (
     rigid_body_gravity as rigid_body_gravity,
     rigid_body_mass as rigid_body_mass,
 )
-
+from ._metrics import (
+    Evaluation as Evaluation,
+    evaluate as evaluate,
+    geometric_mean_relative_error as geometric_mean_relative_error,
+    keypoint_error as keypoint_error,
+    range_of_motion as range_of_motion,
+    relative_error as relative_error,
+    rollout_energy as rollout_energy,
+    valid_prediction_time as valid_prediction_time,
+)
 from ._potential import (
     AbstractPotential as AbstractPotential,
     Gravity as Gravity,

@@ -5,6 +5,11 @@ Needs the `mujoco` extra (`pip install cldyn[mujoco]`); `import cldyn` never imp
 """
 
 from ._bridge import MujocoModel as MujocoModel, from_mjcf as from_mjcf
+from ._datasets import (
+    keycld_dataset as keycld_dataset,
+    keycld_origin as keycld_origin,
+    keycld_recording as keycld_recording,
+)
 from ._record import Recording as Recording, record as record
 from ._scenes import keycld_scene as keycld_scene, scene_xml as scene_xml
 from ._validate import validate as validate

@@ -1,0 +1,232 @@
+"""The models of KeyCLD's ablation study: KeyCLD itself, KeyCLD-NC (no constraint) and NODE2.
+
+All three implement `AbstractDynamics`, so `simulate`, the losses, `fit` and `evaluate` take them
+alike.
+"""
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jaxtyping import Array, Float, PRNGKeyArray
+
+from ._constraint import AbstractConstraint, Anchor, Distance, FixedCoordinate, Stack
+from ._custom_types import ArrayInput, Matrix, Vector
+from ._input import MLPInput
+from ._mass import AbstractMass, PointMasses
+from ._potential import MLPPotential
+from ._system import AbstractDynamics, ConstrainedLagrangian, check_array
+
+
+class CoupledMasses(AbstractMass):
+    """A learnable constant mass matrix that couples keypoints: $M = A \otimes I_d$.
+
+    `A` is a symmetric positive definite `(n, n)` matrix over the `n` keypoints, stored as its
+    Cholesky factor (log-diagonal and strictly lower part), so every parameter value is valid. With a
+    diagonal `A` this is KeyCLD's `PointMasses` (eq. 14); the off-diagonal terms give the exact
+    kinetic energy of a planar rigid body carried by two keypoints whose centre of mass lies on the
+    line between them (`T = 1/2 m |v_c|^2 + 1/2 I |omega|^2` with `v_c` an affine combination of the
+    two keypoint velocities), which point masses at, say, both ends of a uniform rod cannot express.
+
+    **Arguments:**
+
+    - `masses`: the initial keypoint masses (the diagonal of `A`), shape `(n,)`.
+    - `dim`: dimension of each keypoint.
+
+    !!! example
+
+        ```python
+        mass = cldyn.CoupledMasses(jnp.ones(2))   # two planar keypoints, k = 4, initially diagonal
+        ```
+    """
+
+    log_diagonal: Float[Array, " n"]
+    lower: Float[Array, "n n"]
+    dim: int = eqx.field(static=True)
+
+    def __init__(self, masses: ArrayInput, *, dim: int = 2):
+        masses = jnp.asarray(masses, dtype=float)
+        if masses.ndim != 1 or masses.shape[0] == 0:
+            raise ValueError(f"masses must have shape (n_keypoints,), got {masses.shape}")
+        if not isinstance(masses, jax.core.Tracer) and not bool(jnp.all(masses > 0)):
+            raise ValueError(f"masses must be positive, got {np.asarray(masses)}")
+        self.log_diagonal = 0.5 * jnp.log(masses)
+        self.lower = jnp.zeros((masses.shape[0], masses.shape[0]), dtype=masses.dtype)
+        self.dim = dim
+
+    @property
+    def size(self) -> int:
+        return self.dim * self.log_diagonal.shape[0]
+
+    def keypoint_matrix(self) -> Float[Array, "n n"]:
+        """The `(n, n)` matrix `A` over keypoints."""
+        factor = jnp.tril(self.lower, -1) + jnp.diag(jnp.exp(self.log_diagonal))
+        return factor @ factor.T
+
+    def matrix(self) -> Matrix:
+        return jnp.kron(self.keypoint_matrix(), jnp.eye(self.dim, dtype=self.lower.dtype))
+
+    def _apply(self, a, v):
+        n = a.shape[0]
+        shaped = v.reshape(n, self.dim, *v.shape[1:])
+        return jnp.tensordot(a, shaped, axes=1).reshape(v.shape)
+
+    def matvec(self, v):
+        return self._apply(self.keypoint_matrix(), v)
+
+    def solve(self, b):
+        return self._apply(jnp.linalg.inv(self.keypoint_matrix()), b)
+
+    def inverse(self) -> Matrix:
+        return jnp.kron(jnp.linalg.inv(self.keypoint_matrix()), jnp.eye(self.dim, dtype=self.lower.dtype))
+
+
+class SecondOrderNeuralODE(AbstractDynamics):
+    """A second-order neural ODE, $\\ddot x = f_\\theta(x, \\dot x, u)$: the NODE2 ablation of KeyCLD.
+
+    An MLP on the concatenation `[x, xd, u]` with CELU activations, three hidden layers of
+    `2 * 32 = 64` units by default (appendix A.4), that outputs the keypoint accelerations. It has no
+    energies and no constraints. Weights use Equinox's default (LeCun-uniform) initialisation.
+
+    **Arguments:**
+
+    - `size`: the number `k` of keypoint coordinates.
+    - `num_inputs`: the number `l` of controls (may be 0).
+    - `width`: hidden width.
+    - `depth`: number of hidden layers.
+    - `key`: a `jax.random` key.
+
+    !!! example
+
+        ```python
+        node2 = cldyn.SecondOrderNeuralODE(4, 2, key=jax.random.key(0))
+        xdd = node2.acceleration(x, xd, u)
+        ```
+    """
+
+    mlp: eqx.nn.MLP
+    dimension: int = eqx.field(static=True)
+    inputs: int = eqx.field(static=True)
+
+    def __init__(self, size: int, num_inputs: int, *, width: int = 64, depth: int = 3, key: PRNGKeyArray):
+        if size <= 0 or num_inputs < 0 or width <= 0 or depth < 0:
+            raise ValueError(
+                f"need size > 0, num_inputs >= 0, width > 0, depth >= 0; got {size}, {num_inputs}, "
+                f"{width}, {depth}"
+            )
+        self.mlp = eqx.nn.MLP(2 * size + num_inputs, size, width, depth, activation=jax.nn.celu, key=key)
+        self.dimension = size
+        self.inputs = num_inputs
+
+    @property
+    def size(self) -> int:
+        return self.dimension
+
+    @property
+    def num_inputs(self) -> int:
+        return self.inputs
+
+    @property
+    def num_constraints(self) -> int:
+        return 0
+
+    def acceleration(self, x: ArrayInput, xd: ArrayInput, u: ArrayInput | None = None) -> Vector:
+        """The keypoint accelerations `f(x, xd, u)`, shape `(k,)`; `u = None` means zero controls."""
+        x = check_array("x", x, (self.size,))
+        xd = check_array("xd", xd, (self.size,))
+        if u is None:
+            u = jnp.zeros(self.num_inputs, dtype=x.dtype)
+        u = check_array("u", u, (self.num_inputs,))
+        return self.mlp(jnp.concatenate([x, xd, u.astype(x.dtype)]))
+
+
+def keycld_model(
+    size: int,
+    num_inputs: int,
+    constraint: AbstractConstraint | None,
+    *,
+    key: PRNGKeyArray,
+    masses: ArrayInput | None = None,
+    width: int = 32,
+    depth: int = 2,
+    dim: int = 2,
+    mass: str = "point",
+) -> ConstrainedLagrangian:
+    """The learnable KeyCLD model: point masses (eq. 14), an MLP potential and an MLP input matrix.
+
+    Appendix A.4 of the paper: `V(x)` and `g(x)` are CELU MLPs with two hidden layers of 32 units,
+    the masses are learned through their square roots. With `constraint=None` this is the KeyCLD-NC
+    ablation.
+
+    **Arguments:**
+
+    - `size`: the number `k` of keypoint coordinates (`dim` per keypoint).
+    - `num_inputs`: the number `l` of controls (0 for none: no input matrix).
+    - `constraint`: the holonomic constraints, e.g. `cldyn.Anchor(0)` for the pendulum, or `None`.
+    - `key`: a `jax.random` key.
+    - `masses`: the initial keypoint masses, shape `(size / dim,)`; ones by default.
+    - `width`, `depth`: of both MLPs.
+    - `dim`: dimension of each keypoint.
+    - `mass`: `"point"` for KeyCLD's diagonal point masses (eq. 14), or `"coupled"` for a constant
+      mass matrix `A \otimes I_d` that couples keypoints (`CoupledMasses`), exact for rigid bodies
+      whose centre of mass lies between their keypoints.
+
+    **Returns:** a `ConstrainedLagrangian`.
+
+    !!! example
+
+        ```python
+        constraint = cldyn.Stack([cldyn.FixedCoordinate(0, axis=1), cldyn.Distance(0, 1)])
+        cartpole = cldyn.keycld_model(4, 2, constraint, key=jax.random.key(0))
+        nc = cldyn.keycld_model(4, 2, None, key=jax.random.key(0))   # KeyCLD-NC
+        ```
+    """
+    if size <= 0 or size % dim:
+        raise ValueError(f"size must be a positive multiple of dim={dim}, got {size}")
+    if constraint is not None and not isinstance(constraint, AbstractConstraint):
+        raise TypeError(f"constraint must be an AbstractConstraint or None, got {type(constraint).__name__}")
+    count = size // dim
+    masses = jnp.ones(count) if masses is None else jnp.asarray(masses, dtype=float)
+    if masses.shape != (count,):
+        raise ValueError(f"masses must have shape ({count},), one per keypoint; got {masses.shape}")
+    if mass not in ("point", "coupled"):
+        raise ValueError(f"mass must be 'point' or 'coupled', got {mass!r}")
+    potential_key, input_key = jax.random.split(key)
+    return ConstrainedLagrangian(
+        mass=PointMasses(masses, dim=dim) if mass == "point" else CoupledMasses(masses, dim=dim),
+        potential=MLPPotential(size, width=width, depth=depth, key=potential_key),
+        constraint=constraint,
+        input_matrix=None
+        if num_inputs == 0
+        else MLPInput(size, num_inputs, width=width, depth=depth, key=input_key),
+    )
+
+
+
+KEYCLD_SYSTEMS = ("pendulum", "cartpole", "acrobot")
+
+
+def keycld_constraint(system: str) -> AbstractConstraint:
+    """The constraints of KeyCLD's models (paper figure 7), with the pivot at the origin.
+
+    - `"pendulum"`: `Anchor(0)`, the tip at a fixed distance from the pivot;
+    - `"cartpole"`: `FixedCoordinate(0, axis=1)` (the cart keeps its height) and `Distance(0, 1)`
+      (cart to pole tip);
+    - `"acrobot"`: `Anchor(0)` (the elbow) and `Distance(0, 1)` (elbow to tip).
+
+    Only the Jacobians enter the dynamics (eq. 6), so the lengths need not be known.
+
+    !!! example
+
+        ```python
+        model = cldyn.keycld_model(4, 2, cldyn.keycld_constraint("acrobot"), key=jax.random.key(0))
+        ```
+    """
+    key = system.removeprefix("keycld/")
+    if key == "pendulum":
+        return Anchor(0)
+    if key == "cartpole":
+        return Stack([FixedCoordinate(0, axis=1), Distance(0, 1)])
+    if key == "acrobot":
+        return Stack([Anchor(0), Distance(0, 1)])
+    raise ValueError(f"unknown KeyCLD system {system!r}; choose one of {', '.join(KEYCLD_SYSTEMS)}")

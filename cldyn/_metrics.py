@@ -1,0 +1,283 @@
+"""Evaluation of learned dynamics on held-out runs: rollouts, valid prediction time, relative error.
+
+Metrics act on keypoint trajectories in state space (positions in metres), the counterpart of the
+image-space metrics of the KeyCLD paper (eq. 16): a model is rolled out from the first states of a
+held-out run and compared with the measured positions.
+"""
+
+import dataclasses
+
+import diffrax as dfx
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jaxtyping import Array, ArrayLike, Float
+
+from ._integrate import RK4, AbstractStabilisation, Projection, simulate
+from ._learn import Sequences, _PiecewiseConstant, central_difference
+from ._system import AbstractDynamics, ConstrainedLagrangian
+
+
+def _pair(predicted, truth) -> tuple[Array, Array]:
+    predicted, truth = jnp.asarray(predicted), jnp.asarray(truth)
+    if predicted.shape != truth.shape or predicted.ndim < 2:
+        raise ValueError(
+            "predicted and truth must have the same shape (..., T, k), "
+            f"got {predicted.shape} and {truth.shape}"
+        )
+    return predicted, truth
+
+
+def keypoint_error(
+    predicted: Float[ArrayLike, "*runs T k"], truth: Float[ArrayLike, "*runs T k"], *, dim: int = 2
+) -> Float[Array, "*runs T"]:
+    """The position error of the worst keypoint at every sample: $\\max_j |p_j - \\hat p_j|$.
+
+    **Arguments:**
+
+    - `predicted`, `truth`: keypoint positions, shape `(..., T, k)` with `k = dim * keypoints`.
+    - `dim`: dimension of each keypoint.
+
+    **Returns:** the error in the units of the positions, shape `(..., T)`.
+    """
+    predicted, truth = _pair(predicted, truth)
+    if predicted.shape[-1] % dim:
+        raise ValueError(f"k = {predicted.shape[-1]} is not a multiple of dim = {dim}")
+    delta = (predicted - truth).reshape(*predicted.shape[:-1], -1, dim)
+    return jnp.max(jnp.sqrt(jnp.sum(delta**2, axis=-1)), axis=-1)
+
+
+def valid_prediction_time(
+    predicted: Float[ArrayLike, "*runs T k"],
+    truth: Float[ArrayLike, "*runs T k"],
+    *,
+    threshold: float,
+    dt: float | None = None,
+    dim: int = 2,
+) -> Float[Array, "*runs"]:
+    """The valid prediction time (VPT) in state space: how long a prediction stays close to the truth.
+
+    The state-space counterpart of KeyCLD's eq. 16 (from Botev et al.): with `e_i` the position error
+    of the worst keypoint at predicted sample `i` (`keypoint_error`), the VPT is the number of
+    samples before the first `e_i > threshold`. Pass the predicted samples only (not the given
+    initial state). The threshold is a distance; `evaluate` uses a fraction of the range of motion.
+
+    **Arguments:**
+
+    - `predicted`, `truth`: keypoint positions, shape `(..., T, k)`.
+    - `threshold`: the largest acceptable keypoint error (same units as the positions).
+    - `dt`: the sampling interval; when given the VPT is in seconds, otherwise it is the fraction of
+      the `T` samples (between 0 and 1, as in the paper's Table 1).
+    - `dim`: dimension of each keypoint.
+
+    **Returns:** the VPT per run, shape `(...)`.
+
+    !!! example
+
+        ```python
+        vpt = cldyn.valid_prediction_time(rollout, truth, threshold=0.1)   # 1.0: never exceeded
+        ```
+    """
+    if not threshold > 0:
+        raise ValueError(f"threshold must be positive, got {threshold}")
+    error = keypoint_error(predicted, truth, dim=dim)
+    samples = error.shape[-1]
+    exceeded = error > threshold
+    first = jnp.where(jnp.any(exceeded, axis=-1), jnp.argmax(exceeded, axis=-1), samples)
+    return first * dt if dt is not None else first / samples
+
+
+def relative_error(
+    predicted: Float[ArrayLike, "*runs T k"], truth: Float[ArrayLike, "*runs T k"]
+) -> Float[Array, "*runs T"]:
+    """The relative error of Finzi et al. (constrained HNNs) at every sample.
+
+    $\\mathrm{err}(t) = \\|z(t) - \\hat z(t)\\| / (\\|z(t)\\| + \\|\\hat z(t)\\|)$, between 0 and 1, for
+    states `z` (positions, or positions and velocities concatenated).
+
+    **Returns:** shape `(..., T)`.
+    """
+    predicted, truth = _pair(predicted, truth)
+    norm = jnp.linalg.norm
+    return norm(predicted - truth, axis=-1) / (norm(predicted, axis=-1) + norm(truth, axis=-1))
+
+
+def geometric_mean_relative_error(
+    predicted: Float[ArrayLike, "*runs T k"], truth: Float[ArrayLike, "*runs T k"], *, floor: float = 1e-12
+) -> Float[Array, "*runs"]:
+    """The rollout error of Finzi et al.: the geometric mean over time of `relative_error`.
+
+    $\\exp \\big( \\operatorname{mean}_t \\log \\mathrm{err}(t) \\big)$, with `err` clipped below at
+    `floor` so that an exact sample (error 0, e.g. the initial state) does not make it vanish.
+
+    **Returns:** one value per run, shape `(...)`.
+
+    !!! example
+
+        ```python
+        gm = cldyn.geometric_mean_relative_error(jnp.concatenate([x, xd], -1), truth_state)
+        ```
+    """
+    error = relative_error(predicted, truth)
+    return jnp.exp(jnp.mean(jnp.log(jnp.maximum(error, floor)), axis=-1))
+
+
+def rollout_energy(
+    model: ConstrainedLagrangian, x: Float[ArrayLike, "*runs T k"], xd: Float[ArrayLike, "*runs T k"]
+) -> Float[Array, "*runs T"]:
+    """The model's total energy `T + V` (eq. 17) at every state of a rollout, shape `(..., T)`."""
+    if not isinstance(model, ConstrainedLagrangian):
+        raise TypeError(f"energies need a ConstrainedLagrangian, got {type(model).__name__}")
+    x, xd = _pair(x, xd)
+    flat = jax.vmap(model.energy)(x.reshape(-1, x.shape[-1]), xd.reshape(-1, xd.shape[-1]))
+    return flat.reshape(x.shape[:-1])
+
+
+def range_of_motion(x: Float[ArrayLike, "*runs T k"]) -> float:
+    """The range of motion of keypoint data: the largest spread `max - min` of any coordinate."""
+    x = np.asarray(x)
+    flat = x.reshape(-1, x.shape[-1])
+    return float(np.max(flat.max(axis=0) - flat.min(axis=0)))
+
+
+@dataclasses.dataclass(frozen=True)
+class Evaluation:
+    """Rollouts of a model from the first states of held-out runs, with their metrics.
+
+    **Fields** (numpy arrays; `R` runs, `N` predicted samples after the initial state):
+
+    - `ts`: times of the initial and predicted samples from the initial state, `(N + 1,)`.
+    - `x`, `xd`: the rollout, `(R, N + 1, k)`; `x_true`: the measured positions.
+    - `error`: the worst keypoint's position error at every sample, `(R, N + 1)`.
+    - `vpt`: the valid prediction time per run as a fraction of the `N` predicted samples, `(R,)`;
+      `vpt_seconds` the same in seconds.
+    - `gmre`: the geometric-mean relative error of the positions per run, `(R,)`.
+    - `energy`: the model's energy along its rollout `(R, N + 1)`, or `None` without energies.
+    - `threshold`: the VPT threshold used (metres).
+    """
+
+    ts: np.ndarray
+    x: np.ndarray
+    xd: np.ndarray
+    x_true: np.ndarray
+    error: np.ndarray
+    vpt: np.ndarray
+    vpt_seconds: np.ndarray
+    gmre: np.ndarray
+    energy: np.ndarray | None
+    threshold: float
+
+    def error_over(self, seconds: float) -> np.ndarray:
+        """The root-mean-square keypoint error per run over the first `seconds` of the rollout."""
+        window = self.ts <= seconds + 1e-9
+        return np.sqrt(np.mean(self.error[:, window] ** 2, axis=1))
+
+    def summary(self) -> dict:
+        """Means over runs, as plain floats."""
+        return {
+            "runs": int(self.vpt.shape[0]),
+            "vpt": float(np.mean(self.vpt)),
+            "vpt_seconds": float(np.mean(self.vpt_seconds)),
+            "gmre": float(np.exp(np.mean(np.log(self.gmre)))),
+            "final_error": float(np.mean(self.error[:, -1])),
+            "threshold": self.threshold,
+        }
+
+
+@eqx.filter_jit
+def _rollouts(model, x0, xd0, controls, ts, *, dt, solver, dt0, stabilisation):
+    constrained = isinstance(model, ConstrainedLagrangian) and model.num_constraints > 0
+
+    def run(a, b, c):
+        traj = simulate(
+            model, a, b, ts, control=_PiecewiseConstant(c, dt), solver=solver, dt0=dt0,
+            stabilisation=stabilisation, project=constrained,
+        )
+        return traj.x, traj.xd
+
+    return jax.vmap(run)(x0, xd0, controls)
+
+
+def evaluate(
+    model: AbstractDynamics,
+    data: Sequences,
+    *,
+    threshold: float,
+    horizon: int | None = None,
+    solver: dfx.AbstractSolver | None = None,
+    dt0: float | None = None,
+    stabilisation: AbstractStabilisation | None = Projection(),
+    dim: int = 2,
+) -> Evaluation:
+    """Roll a model out from the first states of held-out runs and measure how long it stays right.
+
+    As in the KeyCLD paper's evaluation, each rollout starts from the second sample of a run with
+    the velocity from the central difference of the first three, $\\hat{\\dot x}_1 = (x_2 - x_0)/2h$
+    (eq. 11), projected onto the constraint tangent space for constrained models; it runs with the
+    run's controls (each held until the next sample) and is compared with the measured positions.
+
+    **Arguments:**
+
+    - `model`: any `AbstractDynamics`.
+    - `data`: held-out runs, a `Sequences`.
+    - `threshold`: the VPT threshold, a keypoint distance (see `valid_prediction_time`); for
+      example 10% of `range_of_motion(data.x)`.
+    - `horizon`: the number of samples to predict; all the rest of each run by default.
+    - `solver`: a diffrax solver; `cldyn.RK4()` by default.
+    - `dt0`: the (fixed) integration step; the sampling interval by default.
+    - `stabilisation`: constraint stabilisation of `cldyn.simulate` (`Projection()` by default).
+    - `dim`: dimension of each keypoint.
+
+    The data are cast to the model's floating dtype; evaluate a float32-trained model in float64 by
+    casting it first (with `jax_enable_x64`).
+
+    **Returns:** an `Evaluation` with the rollouts, per-run VPT, geometric-mean relative error and
+    energies (for Lagrangian models).
+
+    !!! example
+
+        ```python
+        result = cldyn.evaluate(model, test, threshold=0.1 * cldyn.range_of_motion(test.x))
+        print(result.summary())
+        ```
+    """
+    if data.num_samples < 4:
+        raise ValueError(f"evaluate needs runs of at least 4 samples, got {data.num_samples}")
+    available = data.num_samples - 2
+    horizon = available if horizon is None else int(horizon)
+    if not 1 <= horizon <= available:
+        raise ValueError(f"horizon must be between 1 and {available} samples, got {horizon}")
+    dtypes = [a.dtype for a in jax.tree.leaves(eqx.filter(model, eqx.is_inexact_array))]
+    if dtypes:
+        data = data.astype(jnp.result_type(*dtypes))
+    dt = data.dt
+    x0 = data.x[:, 1]
+    xd0 = central_difference(data.x[:, :3], dt)[:, 0]
+    controls = data.u[:, 1 : 2 + horizon]
+    ts = dt * np.arange(horizon + 1)
+    solver = RK4() if solver is None else solver
+    # always a fixed step: simulate treats every Runge-Kutta solver as adaptive without one
+    dt0 = dt if dt0 is None else dt0
+    xs, xds = _rollouts(
+        model, x0, xd0, controls, ts, dt=dt, solver=solver, dt0=dt0, stabilisation=stabilisation
+    )
+    truth = data.x[:, 1 : 2 + horizon]
+    error = keypoint_error(xs, truth, dim=dim)
+    vpt = valid_prediction_time(xs[:, 1:], truth[:, 1:], threshold=threshold, dim=dim)
+    energy = None
+    if isinstance(model, ConstrainedLagrangian):
+        energy = np.asarray(rollout_energy(model, xs, xds))
+    return Evaluation(
+        ts=ts,
+        x=np.asarray(xs),
+        xd=np.asarray(xds),
+        x_true=np.asarray(truth),
+        error=np.asarray(error),
+        vpt=np.asarray(vpt),
+        vpt_seconds=np.asarray(vpt) * horizon * dt,
+        gmre=np.asarray(geometric_mean_relative_error(xs[:, 1:], truth[:, 1:])),
+        energy=energy,
+        threshold=float(threshold),
+    )
+
