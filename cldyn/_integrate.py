@@ -181,7 +181,7 @@ class _Control(eqx.Module):
         return jnp.asarray(self.value(t, x, xd))
 
 
-def _control(control, system: ConstrainedLagrangian) -> _Control:
+def _control(control, system: AbstractDynamics) -> _Control:
     num_inputs = system.num_inputs
     if control is None:
         return _Control(None, "none")
@@ -209,7 +209,7 @@ def _control(control, system: ConstrainedLagrangian) -> _Control:
     return _Control(value, "constant")
 
 
-def _check_control_shape(control: _Control, system: ConstrainedLagrangian, t, x, xd):
+def _check_control_shape(control: _Control, system: AbstractDynamics, t, x, xd):
     if control.kind in ("none", "constant"):
         return
     shape = jax.eval_shape(control, t, x, xd).shape
@@ -325,6 +325,14 @@ class _Projected(dfx.AbstractWrappedSolver):
 
     solver: dfx.AbstractSolver
     projection: Projection
+    # diffrax's adjoints set `scan_kind` on Runge-Kutta solvers (for forward-mode autodiff); it is
+    # passed on to the wrapped solver
+    scan_kind: str | None = None
+
+    def _inner(self):
+        if self.scan_kind is None or getattr(self.solver, "scan_kind", None) is not None:
+            return self.solver
+        return eqx.tree_at(lambda s: s.scan_kind, self.solver, self.scan_kind, is_leaf=lambda v: v is None)
 
     @property
     def term_structure(self):
@@ -351,7 +359,7 @@ class _Projected(dfx.AbstractWrappedSolver):
         return self.solver.init(terms, t0, t1, y0, args)
 
     def step(self, terms, t0, t1, y0, args, solver_state, made_jump):
-        y1, error, dense_info, solver_state, result = self.solver.step(
+        y1, error, dense_info, solver_state, result = self._inner().step(
             terms, t0, t1, y0, args, solver_state, made_jump
         )
         system, _, reference = args
@@ -523,9 +531,14 @@ def simulate(
     if _is_concrete(x0, xd0, ts, reference, system):
         _check_inputs(system, x0, xd0, ts, reference, project)
 
-    adaptive = isinstance(solver, dfx.AbstractAdaptiveSolver) and (
-        dt0 is None or rtol is not None or atol is not None
-    )
+    # RK4 is an explicit Runge-Kutta method to diffrax, but it has no error estimate
+    can_adapt = isinstance(solver, dfx.AbstractAdaptiveSolver) and not isinstance(solver, RK4)
+    if not can_adapt and (rtol is not None or atol is not None):
+        raise ValueError(
+            f"{type(solver).__name__} takes fixed steps and has no error estimate, so rtol/atol do not "
+            "apply; give dt0, or use an adaptive solver such as diffrax.Tsit5() or diffrax.Dopri8()"
+        )
+    adaptive = can_adapt and (dt0 is None or rtol is not None or atol is not None)
     grid = None
     if not adaptive and dt0 is not None and _is_concrete(ts):
         # step exactly onto every save time, so that saved states are (projected) step ends

@@ -230,3 +230,17 @@ def test_free_system_is_ballistic():
     expected_y = 2.0 * ts - 0.5 * 9.81 * ts**2
     assert np.allclose(out.x[:, 1], expected_y, atol=1e-12)
     assert np.allclose(out.x[:, 0], ts, atol=1e-12)
+
+
+def test_rk4_takes_fixed_steps_without_dt0():
+    # RK4 has no error estimate: without dt0 it steps from save time to save time, and tolerances
+    # are refused rather than silently driving a step-size controller with a zero error estimate
+    system, joints = cldyn.systems.acrobot()
+    x0, xd0 = joints.to_keypoints(jnp.array([2.5, 0.3]), jnp.array([1.0, 0.2]))
+    fine = cldyn.simulate(system, x0, xd0, jnp.arange(101) * 0.005, solver=cldyn.RK4(), stabilisation=None)
+    coarse = cldyn.simulate(system, x0, xd0, jnp.arange(51) * 0.01, solver=cldyn.RK4(), stabilisation=None)
+    phi = jax.vmap(system.constraint)(fine.x) - system.constraint(x0)[None, :]
+    assert float(jnp.max(jnp.abs(phi))) < 1e-6
+    assert float(jnp.max(jnp.abs(fine.x[::2] - coarse.x))) < 1e-5
+    with pytest.raises(ValueError, match="RK4 takes fixed steps and has no error estimate"):
+        cldyn.simulate(system, x0, xd0, jnp.linspace(0, 1, 5), solver=cldyn.RK4(), rtol=1e-6)
