@@ -19,7 +19,7 @@ from ._system import AbstractDynamics, ConstrainedLagrangian, check_array
 
 
 class CoupledMasses(AbstractMass):
-    """A learnable constant mass matrix that couples keypoints: $M = A \otimes I_d$.
+    """A learnable constant mass matrix that couples keypoints: $M = A \\otimes I_d$.
 
     `A` is a symmetric positive definite `(n, n)` matrix over the `n` keypoints, stored as its
     Cholesky factor (log-diagonal and strictly lower part), so every parameter value is valid. With a
@@ -168,7 +168,7 @@ def keycld_model(
     - `width`, `depth`: of both MLPs.
     - `dim`: dimension of each keypoint.
     - `mass`: `"point"` for KeyCLD's diagonal point masses (eq. 14), or `"coupled"` for a constant
-      mass matrix `A \otimes I_d` that couples keypoints (`CoupledMasses`), exact for rigid bodies
+      mass matrix `A \\otimes I_d` that couples keypoints (`CoupledMasses`), exact for rigid bodies
       whose centre of mass lies between their keypoints.
 
     **Returns:** a `ConstrainedLagrangian`.
