@@ -720,9 +720,7 @@ def _simulate_held(model, x0, xd0, us, ts):
     x0, xd0 = project_state(model, x0, xd0)
     control = control if model.num_inputs else None
     # forward mode: the initial-state fit differentiates through this with Jacobian-vector products
-    return simulate(
-        model, x0, xd0, ts, control=control, solver=RK4(), dt0=None, adjoint=dfx.ForwardMode()
-    ).x
+    return simulate(model, x0, xd0, ts, control=control, solver=RK4(), dt0=None, adjoint=dfx.ForwardMode()).x
 
 
 @eqx.filter_jit
@@ -750,7 +748,7 @@ def _rollout_batch(model, x0, xd0, us, ts, measured, window: int):
 
 
 def _rollouts(
-    model: ConstrainedLagrangian, data: _Data, horizon: float, window: float = 0.1
+    model: ConstrainedLagrangian, data: _Data, horizon: float, window: float = 0.2
 ) -> tuple[np.ndarray, np.ndarray]:
     """Keypoint position error over time of rollouts from the first interior state of every run."""
     steps = min(int(round(horizon / data.dt)), data.x.shape[1] - 1)
@@ -795,7 +793,9 @@ class Identification:
     - `rejected`: the candidates that were selected but failed a criterion (for the record).
     - `before`, `after`: `accel_rmse` (m/s^2, keypoint accelerations on held-out runs, against the
       smoothed measurement) and `rollout_rmse_1s` (m, keypoint positions over one-second rollouts from
-      the start of each held-out run, against the measurement).
+      the start of each held-out run, against the measurement; each model estimates its own initial
+      state from the first 0.2 s of the run, by Gauss-Newton on its rollout, so that measurement noise
+      in the initial velocity does not swamp the comparison).
     - `model`: the augmented, refitted `ConstrainedLagrangian`; `nominal`: the model it started from.
     - `settings`: everything needed to reproduce the run.
     """
@@ -1039,6 +1039,7 @@ def identify(
                     "feature": f_held[..., cols] @ np.asarray(d.theta),
                     "residual": r_held,
                     "effect": d.candidate.effect,
+                    "round": round_index,
                 }
             )
         detected += new
@@ -1359,8 +1360,14 @@ def _plots(result: Identification, directory: pathlib.Path) -> None:
 
     n = max(1, len(result.scatter))
     fig, axes = plt.subplots(1, n, figsize=(4.5 * n, 4), squeeze=False)
-    for ax, item in zip(axes[0], result.scatter):
-        feature, residual = item["feature"], item["residual"]  # (runs, T, m)
+    for index, (ax, item) in enumerate(zip(axes[0], result.scatter)):
+        feature = item["feature"]  # (runs, n, m): the effect's generalised force, weak form
+        # the partial residual: what is left for this effect once the other detected effects are removed
+        residual = item["residual"] - sum(
+            other["feature"]
+            for j, other in enumerate(result.scatter)
+            if j != index and other["round"] == item["round"]
+        )
         component = int(np.argmax(np.mean(feature**2, axis=(0, 1))))
         f = feature[..., component].reshape(-1)
         r = residual[..., component].reshape(-1)
@@ -1369,7 +1376,7 @@ def _plots(result: Identification, directory: pathlib.Path) -> None:
         line = np.linspace(f.min(), f.max(), 2)
         ax.plot(line, line, "C3", label="identified effect")
         ax.set_xlabel(f"{item['label']} force (joint {component})")
-        ax.set_ylabel("residual generalised force")
+        ax.set_ylabel("partial residual generalised force")
         ax.legend(fontsize=8)
     if not result.scatter:
         axes[0][0].text(0.5, 0.5, "no effect detected", ha="center", va="center")
