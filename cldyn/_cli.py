@@ -13,6 +13,7 @@ import sys
 _COMMAND_MODULES = (
     "cldyn._demo",
     "cldyn.mujoco._cli",
+    "cldyn.mujoco._identify",
     "cldyn._learn_cli",
 )
 

@@ -10,6 +10,7 @@ from ._datasets import (
     keycld_origin as keycld_origin,
     keycld_recording as keycld_recording,
 )
+from ._identify import identify_recording as identify_recording, modify_scene as modify_scene
 from ._record import Recording as Recording, record as record
 from ._scenes import keycld_scene as keycld_scene, scene_xml as scene_xml
 from ._validate import validate as validate
