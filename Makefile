@@ -28,7 +28,7 @@ bench: $(STAMP)
 	$(BIN)/python benchmarks/acceleration.py
 
 docs: $(STAMP)
-	$(BIN)/python -m cldyn --help
+	$(BIN)/python docs/make_api.py
 
 clean:
 	rm -rf $(VENV) build dist *.egg-info

@@ -14,6 +14,7 @@ _COMMAND_MODULES = (
     "cldyn._demo",
     "cldyn.mujoco._cli",
     "cldyn.mujoco._identify",
+    "cldyn.mujoco._control",
     "cldyn._learn_cli",
 )
 

@@ -30,6 +30,12 @@ class EnergyShaping(eqx.Module):
     - `kd`: the damping injection gain (the paper uses 2).
     - `limit`: optional bound on `|u|` per input (actuator saturation).
     - `project`: match in the constraint tangent space (see above); `False` for the literal eq. 32.
+    - `damping`: `"keypoint"` (default) matches the keypoint damping force `-k_d xd` through the same
+      `(g^T g)^-1 g^T` as the shaped force, so that `k_d` is a damping coefficient in N s/m whatever the
+      scale of `g`; `"output"` injects `-k_d g^T xd` on the passive output as eq. 32 prints it. Both are
+      passive. With the output form the damping grows with the square of the actuators' gears (and of
+      a learned `g`'s arbitrary scale): with MuJoCo's KeyCLD scenes (gear 2) the paper's `k_d = 2` makes
+      the swing-up so overdamped that it takes far longer than 10 s.
 
     Call it as a feedback policy `u = controller(t, x, xd)`, e.g. `cldyn.simulate(...,
     control=controller)`.
@@ -50,6 +56,7 @@ class EnergyShaping(eqx.Module):
     kd: Float[Array, ""]
     limit: float | None = eqx.field(static=True)
     project: bool = eqx.field(static=True)
+    damping: str = eqx.field(static=True)
 
     def __init__(
         self,
@@ -60,6 +67,7 @@ class EnergyShaping(eqx.Module):
         *,
         limit: float | None = None,
         project: bool = True,
+        damping: str = "keypoint",
     ):
         if not isinstance(system, ConstrainedLagrangian):
             raise TypeError(f"system must be a ConstrainedLagrangian, got {type(system).__name__}")
@@ -73,6 +81,9 @@ class EnergyShaping(eqx.Module):
             raise ValueError(f"limit must be positive, got {limit}")
         self.limit = limit
         self.project = project
+        if damping not in ("output", "keypoint"):
+            raise ValueError(f"damping must be 'output' or 'keypoint', got {damping!r}")
+        self.damping = damping
 
     def shaped_potential(self, x: Vector) -> Float[Array, ""]:
         """The desired potential $V_d(x) = \\tfrac12 k_p |x - x^*|^2$ (eq. 31)."""
@@ -92,9 +103,13 @@ class EnergyShaping(eqx.Module):
         grad_v = (
             self.system.potential.gradient(x) if self.system.potential is not None else jnp.zeros_like(x)
         )
-        shaped = g.T @ (grad_v - self.kp * (x - self.x_target))
+        force = grad_v - self.kp * (x - self.x_target)
+        if self.damping == "keypoint":
+            force = force - self.kd * xd
         gram = lx.MatrixLinearOperator(g.T @ g, lx.positive_semidefinite_tag)
-        u = lx.linear_solve(gram, shaped, SmallDense()).value - self.kd * (g.T @ xd)
+        u = lx.linear_solve(gram, g.T @ force, SmallDense()).value
+        if self.damping == "output":
+            u = u - self.kd * (g.T @ xd)
         if self.limit is not None:
             u = jnp.clip(u, -self.limit, self.limit)
         return u

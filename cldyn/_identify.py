@@ -80,9 +80,9 @@ class Smoothing(eqx.Module):
     - `test_stride`: samples between the centres of consecutive test functions.
     """
 
-    window: int = eqx.field(static=True, default=9)
-    order: int = eqx.field(static=True, default=4)
-    test_width: int = eqx.field(static=True, default=21)
+    window: int = eqx.field(static=True, default=11)
+    order: int = eqx.field(static=True, default=6)
+    test_width: int = eqx.field(static=True, default=31)
     test_stride: int = eqx.field(static=True, default=5)
 
     def __check_init__(self):
@@ -674,19 +674,39 @@ def refit(
     weights: np.ndarray,
     test_functions: tuple[np.ndarray, np.ndarray],
     *,
-    max_steps: int = 30,
+    max_steps: int | None = None,
 ) -> ConstrainedLagrangian:
-    """Least-squares refit (Levenberg-Marquardt, optimistix) of the weighted weak joint-space residual."""
+    """Least-squares refit of the weighted weak joint-space residual (optimistix).
+
+    Levenberg-Marquardt for parametric models; for larger ones (a neural potential), whose Jacobian
+    would not fit in memory, BFGS on the sum of squares, which needs gradients only.
+    """
     spec = _refit_filter(model)
     params, static = eqx.partition(model, spec)
-    if not jax.tree_util.tree_leaves(params):
+    size = sum(leaf.size for leaf in jax.tree_util.tree_leaves(params))
+    if size == 0:
         return model
     arrays = tuple(jnp.asarray(a) for a in (data.x, data.xd, data.u, data.q))
     tests = tuple(jnp.asarray(a) for a in test_functions)
-    solver = optx.LevenbergMarquardt(rtol=1e-8, atol=1e-10)
     args = (static, joints, arrays, tests, jnp.asarray(weights))
-    solution = optx.least_squares(_weak_residual, solver, params, args, max_steps=max_steps, throw=False)
+    if size <= _LM_MAX_PARAMETERS:
+        solver = optx.LevenbergMarquardt(rtol=1e-8, atol=1e-10)
+        steps = 30 if max_steps is None else max_steps
+        solution = optx.least_squares(_weak_residual, solver, params, args, max_steps=steps, throw=False)
+    else:
+        solver = optx.BFGS(rtol=1e-8, atol=1e-10)
+        steps = 500 if max_steps is None else max_steps
+        solution = optx.minimise(_sum_of_squares, solver, params, args, max_steps=steps, throw=False)
     return eqx.combine(solution.value, static)
+
+
+# Levenberg-Marquardt materialises the (residuals x parameters) Jacobian
+_LM_MAX_PARAMETERS = 256
+
+
+def _sum_of_squares(params, args):
+    residual = _weak_residual(params, args)
+    return 0.5 * jnp.sum(residual**2) / residual.shape[0]
 
 
 def _weak_residual(params, args):
@@ -809,7 +829,7 @@ class Identification:
     settings: dict[str, Any]
     rounds: list[dict[str, Any]]
     curves: dict[str, np.ndarray] = dataclasses.field(repr=False)
-    scatter: list[dict[str, np.ndarray]] = dataclasses.field(repr=False)
+    scatter: list[dict[str, Any]] = dataclasses.field(repr=False)
 
     def to_dict(self) -> dict[str, Any]:
         """The content of `report.json`."""

@@ -263,12 +263,24 @@ class RATTLE(dfx.AbstractSolver):
     control) are evaluated with one fixed-point correction, which keeps second order. Fixed steps
     only; it needs a constant mass matrix (no `JointArmature`).
 
+    With `order=4`, each step is Yoshida's symmetric composition of three RATTLE steps of sizes
+    `w1 h, w0 h, w1 h` (`w1 = 1 / (2 - 2^(1/3))`, `w0 = 1 - 2 w1`): still symplectic and on the
+    manifold, fourth order, at three times the cost; the energy error shrinks as `h^4`.
+
     **Arguments:**
 
     - `projection`: tolerances of the Newton solve for `lambda`.
+    - `order`: 2 (RATTLE) or 4 (Yoshida's composition of RATTLE).
     """
 
     projection: Projection = Projection()
+    order_: int = eqx.field(static=True, default=2)
+
+    def __init__(self, projection: Projection = Projection(), *, order: int = 2):
+        if order not in (2, 4):
+            raise ValueError(f"RATTLE comes in order 2 or 4, got {order}")
+        self.projection = projection
+        self.order_ = order
     term_structure: ClassVar = dfx.AbstractTerm
     interpolation_cls: ClassVar[Callable[..., dfx.LocalLinearInterpolation]] = (
         dfx.LocalLinearInterpolation
@@ -276,7 +288,7 @@ class RATTLE(dfx.AbstractSolver):
 
     def order(self, terms):
         del terms
-        return 2
+        return self.order_
 
     def init(self, terms, t0, t1, y0, args):
         del terms, t0, t1, y0, args
@@ -284,6 +296,16 @@ class RATTLE(dfx.AbstractSolver):
 
     def step(self, terms, t0, t1, y0, args, solver_state, made_jump):
         del terms, solver_state, made_jump
+        if self.order_ == 2:
+            y1 = self._rattle(t0, t1, y0, args)
+        else:
+            w1 = 1.0 / (2.0 - 2.0 ** (1.0 / 3.0))
+            h = t1 - t0
+            ta, tb = t0 + w1 * h, t0 + (1.0 - w1) * h
+            y1 = self._rattle(tb, t1, self._rattle(ta, tb, self._rattle(t0, ta, y0, args), args), args)
+        return y1, None, dict(y0=y0, y1=y1), None, dfx.RESULTS.successful
+
+    def _rattle(self, t0, t1, y0, args):
         system, control, reference = args
         h = t1 - t0
         x0, v0 = y0
@@ -313,8 +335,7 @@ class RATTLE(dfx.AbstractSolver):
         v1 = kick(v_half)
         if system.dissipation is not None or control.kind == "feedback":
             v1 = kick(v1)
-        y1 = (x1, v1)
-        return y1, None, dict(y0=y0, y1=y1), None, dfx.RESULTS.successful
+        return (x1, v1)
 
     def func(self, terms, t0, y0, args):
         return terms.vf(t0, y0, args)

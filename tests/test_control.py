@@ -40,8 +40,8 @@ def test_literal_eq32_for_a_pendulum_equals_the_projected_form():
     system, joints = cldyn.systems.pendulum()
     target = joints.keypoints(jnp.array([np.pi]))
     x, xd = joints.to_keypoints(jnp.array([0.7]), jnp.array([0.4]))
-    projected = cldyn.EnergyShaping(system, target, 5.0, 2.0)(0.0, x, xd)
-    literal = cldyn.EnergyShaping(system, target, 5.0, 2.0, project=False)(0.0, x, xd)
+    projected = cldyn.EnergyShaping(system, target, 5.0, 2.0, damping="output")(0.0, x, xd)
+    literal = cldyn.EnergyShaping(system, target, 5.0, 2.0, project=False, damping="output")(0.0, x, xd)
     assert np.allclose(projected, literal, rtol=1e-12)
     # and by hand: torque = L (e_t . (grad V - kp (x - x*))) - kd L^2 qd ... with g = e_t / L
     length, theta = 1.0, 0.7
@@ -51,6 +51,22 @@ def test_literal_eq32_for_a_pendulum_equals_the_projected_form():
     g = e_t / length
     expected = (g @ shaped) / (g @ g) - 2.0 * g @ np.asarray(xd)
     assert np.allclose(literal, expected, rtol=1e-12)
+    # keypoint damping: the same shaped term, damping -kd (g . xd) / (g . g)
+    keypoint = cldyn.EnergyShaping(system, target, 5.0, 2.0)(0.0, x, xd)
+    assert np.allclose(keypoint, (g @ shaped - 2.0 * g @ np.asarray(xd)) / (g @ g), rtol=1e-12)
+
+
+def test_keypoint_damping_does_not_depend_on_the_gear():
+    for gear in (1.0, 4.0):
+        system, joints = cldyn.systems.pendulum(gear=gear)
+        target = joints.keypoints(jnp.array([np.pi]))
+        x, xd = joints.to_keypoints(jnp.array([0.7]), jnp.array([0.4]))
+        controller = cldyn.EnergyShaping(system, target, 5.0, 2.0)
+        # the torque actually applied, gear * u, is the same for every gear
+        torque = gear * controller(0.0, x, xd)
+        if gear == 1.0:
+            reference = torque
+    assert np.allclose(torque, reference, rtol=1e-12)
 
 
 def test_cartpole_needs_the_tangent_projection():
@@ -60,7 +76,7 @@ def test_cartpole_needs_the_tangent_projection():
     target = joints.keypoints(q_target)
     x0, xd0 = joints.to_keypoints(jnp.array([0.05, 0.05]), jnp.zeros(2))
     ts = jnp.linspace(0.0, 20.0, 21)
-    literal = cldyn.EnergyShaping(system, target, 5.0, 2.0, project=False)
+    literal = cldyn.EnergyShaping(system, target, 5.0, 2.0, project=False, damping="output")
     out = cldyn.simulate(system, x0, xd0, ts, control=literal)
     assert float(jnp.abs(joints.joints(out.x[-1])[1])) < 0.1  # still hanging
 

@@ -5,6 +5,7 @@ Needs the `mujoco` extra (`pip install cldyn[mujoco]`); `import cldyn` never imp
 """
 
 from ._bridge import MujocoModel as MujocoModel, from_mjcf as from_mjcf
+from ._control import closed_loop as closed_loop, plot_swing_up as plot_swing_up, swing_up as swing_up
 from ._datasets import (
     keycld_dataset as keycld_dataset,
     keycld_origin as keycld_origin,

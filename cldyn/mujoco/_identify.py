@@ -30,7 +30,8 @@ def modify_scene(
 
     - `mjcf`: a path, an XML string, a dm_control suite name or `"keycld/<name>"`.
     - `joints`: joint name -> `{attribute: value}` for `damping`, `frictionloss`, `stiffness`,
-      `springref` and `armature`.
+      `springref` and `armature`, in the MJCF's own units (`springref` of a hinge is in the compiler's
+      angle unit: degrees for dm_control's scenes, as MuJoCo's default).
     - `actuators`: actuator name -> `{"gear": value}`.
     - `flags`: MuJoCo `<option><flag>` settings, e.g. `{"constraint": "enable"}`: frictionloss is a
       constraint in MuJoCo and acts only where constraints are enabled (dm_control's acrobot disables

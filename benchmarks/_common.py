@@ -1,0 +1,33 @@
+"""Shared helpers for the benchmark scripts: machine description and result files."""
+
+import datetime
+import json
+import os
+import pathlib
+import platform
+
+RESULTS = pathlib.Path(__file__).resolve().parent / "results"
+
+
+def machine() -> dict:
+    """What the numbers were measured on."""
+    import jax
+
+    return {
+        "platform": platform.platform(),
+        "python": platform.python_version(),
+        "cpus": os.cpu_count(),
+        "jax": jax.__version__,
+        "backend": jax.default_backend(),
+        "date": datetime.datetime.now().isoformat(timespec="seconds"),
+    }
+
+
+def write(name: str, result: dict, markdown: str | None = None) -> None:
+    """Write `results/<name>.json` (and `.md`), and print the JSON object."""
+    RESULTS.mkdir(parents=True, exist_ok=True)
+    text = json.dumps(result, indent=2)
+    (RESULTS / f"{name}.json").write_text(text + "\n")
+    if markdown is not None:
+        (RESULTS / f"{name}.md").write_text(markdown)
+    print(text)
