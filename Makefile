@@ -19,7 +19,7 @@ lint: $(STAMP)
 	$(BIN)/ruff check cldyn keyvision tests benchmarks examples
 
 test: lint
-	$(BIN)/python -m pytest -q
+	$(BIN)/python -m pytest -q -n 2
 
 test-fast: $(STAMP)
 	$(BIN)/python -m pytest -q -m "not slow"

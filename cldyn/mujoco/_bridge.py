@@ -27,7 +27,7 @@ from .._input import JointInput
 from .._mass import ConstantMass, JointArmature
 from .._potential import AbstractPotential, Gravity, JointSpring
 from .._system import ConstrainedLagrangian
-from ._scenes import load_model
+from ._scenes import load_model, scene_xml
 from ._tree import (
     _HINGE,
     TOL,
@@ -657,6 +657,26 @@ def from_mjcf(
         xdd = bridge.system.acceleration(x, xd, jnp.array([0.5, 0.0]))
         ```
     """
+    key = (
+        scene_xml(mjcf),
+        None if keypoints is None else tuple(keypoints),
+        tuple(include),
+        bool(jax.config.jax_enable_x64),
+    )
+    if key not in _BUILT:
+        if len(_BUILT) >= _BUILT_MAX:
+            _BUILT.pop(next(iter(_BUILT)))
+        _BUILT[key] = _from_mjcf(mjcf, keypoints=keypoints, include=include)
+    return _BUILT[key]
+
+
+# Built models are immutable; handing out the same object for the same scene lets every jitted function
+# that takes it hit JAX's compilation cache (the joint maps are static functions, new at every build).
+_BUILT: dict = {}
+_BUILT_MAX = 32
+
+
+def _from_mjcf(mjcf, *, keypoints, include) -> "MujocoModel":
     include = _check_include(include)
     model, _, _ = load_model(mjcf)
     data = reference_data(model)
