@@ -65,6 +65,7 @@ def main():
     control = np.zeros((BATCH, STEPS, model.nu))
     with rollout.Rollout(nthread=threads) as runner:
         mj_batch = best_of(lambda: runner.rollout(model, datas, state, control))
+    with rollout.Rollout(nthread=1) as runner:
         mj_single = best_of(lambda: runner.rollout(model, datas[:1], state[:1], control[:1]))
 
     # cldyn
@@ -82,7 +83,8 @@ def main():
 
     # the two agree: same dynamics, same integrator (on a non-chaotic start, over the first second)
     check = np.asarray(single(x0[0], xd0[0]))[:101]
-    states, _ = rollout.rollout(model, datas[0], state[:1], control[:1, :100])
+    with rollout.Rollout(nthread=1) as runner:
+        states, _ = runner.rollout(model, datas[:1], state[:1], control[:1, :100])
     mj_qpos = states[0, :, 1:3]
     mj_x = np.asarray(jax.vmap(bridge.joints.keypoints)(jnp.asarray(mj_qpos)))
     agreement = float(np.max(np.abs(mj_x - check[1:101])))

@@ -533,10 +533,14 @@ def simulate(
         raise TypeError("stabilisation must be Projection(), Baumgarte(alpha, beta) or None")
     x0 = check_array("x0", x0, (system.size,))
     xd0 = check_array("xd0", xd0, (system.size,))
+    # Save times given as concrete values stay concrete here even inside a caller's jit (where every
+    # jnp operation is staged): the step grid and the input checks need their values.
+    concrete_ts = None if isinstance(ts, jax.core.Tracer) else np.asarray(ts)
     ts = jnp.asarray(ts)
     if ts.ndim != 1:
         raise ValueError(f"ts must be a 1-D array of times, got shape {ts.shape}")
-    ts = ts.astype(jnp.result_type(x0.dtype, ts.dtype, float))
+    dtype = jnp.result_type(x0.dtype, ts.dtype, float)
+    ts = ts.astype(dtype) if concrete_ts is None else jnp.asarray(concrete_ts.astype(dtype))
     if reference is not None:
         reference = check_array("reference", reference, (system.num_constraints,))
     solver = dfx.Tsit5() if solver is None else solver
@@ -549,8 +553,8 @@ def simulate(
     control = _control(control, system)
     _check_control_shape(control, system, ts[0], x0, xd0)
 
-    if _is_concrete(x0, xd0, ts, reference, system):
-        _check_inputs(system, x0, xd0, ts, reference, project)
+    if concrete_ts is not None and _is_concrete(x0, xd0, reference, system):
+        _check_inputs(system, x0, xd0, concrete_ts, reference, project)
 
     # RK4 is an explicit Runge-Kutta method to diffrax, but it has no error estimate
     can_adapt = isinstance(solver, dfx.AbstractAdaptiveSolver) and not isinstance(solver, RK4)
@@ -561,9 +565,9 @@ def simulate(
         )
     adaptive = can_adapt and (dt0 is None or rtol is not None or atol is not None)
     grid = None
-    if not adaptive and dt0 is not None and _is_concrete(ts):
+    if not adaptive and dt0 is not None and concrete_ts is not None:
         # step exactly onto every save time, so that saved states are (projected) step ends
-        times = np.asarray(ts)
+        times = concrete_ts.astype(float)
         substeps = np.maximum(1, np.ceil(np.diff(times) / dt0 - 1e-9)).astype(int)
         pieces = [np.linspace(a, b, n + 1)[:-1] for a, b, n in zip(times[:-1], times[1:], substeps)]
         grid = jnp.asarray(np.concatenate(pieces + [times[-1:]]), dtype=ts.dtype)
