@@ -16,7 +16,7 @@ demo: $(STAMP)
 	$(BIN)/python -m cldyn demo
 
 lint: $(STAMP)
-	$(BIN)/ruff check cldyn keyvision tests benchmarks examples
+	$(BIN)/ruff check cldyn keyvision tests benchmarks examples docs
 
 test: lint
 	$(BIN)/python -m pytest -q -n 2

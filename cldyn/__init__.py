@@ -7,10 +7,7 @@ in Keypoint Coordinates from Images") in JAX and Equinox.
 import importlib.metadata
 
 from . import systems as systems
-
-# -- learning dynamics from keypoint states (issue 5) --------------------------------------------
 from ._baselines import (
-    CoupledMasses as CoupledMasses,
     SecondOrderNeuralODE as SecondOrderNeuralODE,
     keycld_constraint as keycld_constraint,
     keycld_model as keycld_model,
@@ -81,6 +78,7 @@ from ._learn import (
 from ._mass import (
     AbstractMass as AbstractMass,
     ConstantMass as ConstantMass,
+    CoupledMasses as CoupledMasses,
     JointArmature as JointArmature,
     PointMasses as PointMasses,
     pivot_body_gravity as pivot_body_gravity,

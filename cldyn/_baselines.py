@@ -7,78 +7,14 @@ alike.
 import equinox as eqx
 import jax
 import jax.numpy as jnp
-import numpy as np
-from jaxtyping import Array, Float, PRNGKeyArray
+from jaxtyping import PRNGKeyArray
 
 from ._constraint import AbstractConstraint, Anchor, Distance, FixedCoordinate, Stack
-from ._custom_types import ArrayInput, Matrix, Vector
+from ._custom_types import ArrayInput, Vector
 from ._input import MLPInput
-from ._mass import AbstractMass, PointMasses
+from ._mass import CoupledMasses, PointMasses
 from ._potential import MLPPotential
 from ._system import AbstractDynamics, ConstrainedLagrangian, check_array
-
-
-class CoupledMasses(AbstractMass):
-    """A learnable constant mass matrix that couples keypoints: $M = A \\otimes I_d$.
-
-    `A` is a symmetric positive definite `(n, n)` matrix over the `n` keypoints, stored as its
-    Cholesky factor (log-diagonal and strictly lower part), so every parameter value is valid. With a
-    diagonal `A` this is KeyCLD's `PointMasses` (eq. 14); the off-diagonal terms give the exact
-    kinetic energy of a planar rigid body carried by two keypoints whose centre of mass lies on the
-    line between them (`T = 1/2 m |v_c|^2 + 1/2 I |omega|^2` with `v_c` an affine combination of the
-    two keypoint velocities), which point masses at, say, both ends of a uniform rod cannot express.
-
-    **Arguments:**
-
-    - `masses`: the initial keypoint masses (the diagonal of `A`), shape `(n,)`.
-    - `dim`: dimension of each keypoint.
-
-    !!! example
-
-        ```python
-        mass = cldyn.CoupledMasses(jnp.ones(2))   # two planar keypoints, k = 4, initially diagonal
-        ```
-    """
-
-    log_diagonal: Float[Array, " n"]
-    lower: Float[Array, "n n"]
-    dim: int = eqx.field(static=True)
-
-    def __init__(self, masses: ArrayInput, *, dim: int = 2):
-        masses = jnp.asarray(masses, dtype=float)
-        if masses.ndim != 1 or masses.shape[0] == 0:
-            raise ValueError(f"masses must have shape (n_keypoints,), got {masses.shape}")
-        if not isinstance(masses, jax.core.Tracer) and not bool(jnp.all(masses > 0)):
-            raise ValueError(f"masses must be positive, got {np.asarray(masses)}")
-        self.log_diagonal = 0.5 * jnp.log(masses)
-        self.lower = jnp.zeros((masses.shape[0], masses.shape[0]), dtype=masses.dtype)
-        self.dim = dim
-
-    @property
-    def size(self) -> int:
-        return self.dim * self.log_diagonal.shape[0]
-
-    def keypoint_matrix(self) -> Float[Array, "n n"]:
-        """The `(n, n)` matrix `A` over keypoints."""
-        factor = jnp.tril(self.lower, -1) + jnp.diag(jnp.exp(self.log_diagonal))
-        return factor @ factor.T
-
-    def matrix(self) -> Matrix:
-        return jnp.kron(self.keypoint_matrix(), jnp.eye(self.dim, dtype=self.lower.dtype))
-
-    def _apply(self, a, v):
-        n = a.shape[0]
-        shaped = v.reshape(n, self.dim, *v.shape[1:])
-        return jnp.tensordot(a, shaped, axes=1).reshape(v.shape)
-
-    def matvec(self, v):
-        return self._apply(self.keypoint_matrix(), v)
-
-    def solve(self, b):
-        return self._apply(jnp.linalg.inv(self.keypoint_matrix()), b)
-
-    def inverse(self) -> Matrix:
-        return jnp.kron(jnp.linalg.inv(self.keypoint_matrix()), jnp.eye(self.dim, dtype=self.lower.dtype))
 
 
 class SecondOrderNeuralODE(AbstractDynamics):

@@ -186,7 +186,7 @@ def test_vmap_equals_loop():
     system, joints, _ = CASES["acrobot"]
     q, qd, u = _random_joint_states(jax.random.key(5), 2, 2, n=1000)
     x, xd = jax.vmap(joints.to_keypoints)(q, qd)
-    batched = eqx.filter_jit(jax.vmap(system.acceleration))(x, xd, u)
+    batched = eqx.filter_jit(lambda x, xd, u: jax.vmap(system.acceleration)(x, xd, u))(x, xd, u)
     single = eqx.filter_jit(system.acceleration)
     looped = np.stack([np.asarray(single(x[i], xd[i], u[i])) for i in range(1000)])
     assert np.allclose(batched, looped, rtol=1e-12, atol=1e-12)
