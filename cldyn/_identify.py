@@ -531,6 +531,13 @@ class _Data:
         )
 
 
+@eqx.filter_jit
+def _joint_positions(coordinates, x):
+    if not coordinates:
+        return jnp.zeros(x.shape[:2] + (0,), dtype=x.dtype)
+    return jax.vmap(jax.vmap(lambda y: jnp.stack([c(y) for c in coordinates])))(x)
+
+
 def _prepare(x, u, dt, smoothing: Smoothing, coordinates) -> _Data:
     x = np.asarray(x, dtype=float)
     if x.ndim != 3:
@@ -550,13 +557,7 @@ def _prepare(x, u, dt, smoothing: Smoothing, coordinates) -> _Data:
         raise ValueError(f"dt must be positive, got {dt}")
     xs, xds, xdds = smoothing(x, dt)
     m = smoothing.margin
-    q = np.asarray(
-        jax.jit(
-            jax.vmap(
-                jax.vmap(lambda y: jnp.stack([c(y) for c in coordinates]) if coordinates else jnp.zeros(0))
-            )
-        )(jnp.asarray(xs))
-    )
+    q = np.asarray(_joint_positions(tuple(coordinates), jnp.asarray(xs)))
     q = np.unwrap(q, axis=1) if q.size else q
     return _Data(xs, xds, xdds, u[:, m : samples - m], q, x[:, m : samples - m], u, x, float(dt), m)
 
