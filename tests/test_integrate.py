@@ -37,7 +37,7 @@ def _final_error(system, x0, xd0, solver, dts, horizon, stabilisation):
 @pytest.mark.parametrize(
     "solver, stabilisation, order",
     [(cldyn.RK4(), cldyn.Projection(), 4), (cldyn.RATTLE(), None, 2), (cldyn.RATTLE(order=4), None, 4)],
-    ids=["rk4-projection", "rattle", "rattle-yoshida"],
+    ids=["rk4-projection", "rattle", "rattle-order4"],
 )
 def test_convergence_order(acrobot, solver, stabilisation, order):
     system, joints = acrobot
