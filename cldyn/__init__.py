@@ -7,11 +7,7 @@ in Keypoint Coordinates from Images") in JAX and Equinox.
 import importlib.metadata
 
 from . import systems as systems
-from ._baselines import (
-    SecondOrderNeuralODE as SecondOrderNeuralODE,
-    keycld_constraint as keycld_constraint,
-    keycld_model as keycld_model,
-)
+from ._baselines import SecondOrderNeuralODE as SecondOrderNeuralODE
 from ._constraint import (
     AbstractConstraint as AbstractConstraint,
     Anchor as Anchor,
@@ -20,7 +16,14 @@ from ._constraint import (
     FromFunction as FromFunction,
     Stack as Stack,
 )
-from ._control import EnergyShaping as EnergyShaping
+from ._control import (
+    AbstractControl as AbstractControl,
+    ConstantControl as ConstantControl,
+    EnergyShaping as EnergyShaping,
+    FeedbackControl as FeedbackControl,
+    TimeVaryingControl as TimeVaryingControl,
+    ZeroOrderHold as ZeroOrderHold,
+)
 from ._coordinates import (
     AbstractCoordinate as AbstractCoordinate,
     HingeAngle as HingeAngle,
@@ -60,6 +63,11 @@ from ._integrate import (
     Trajectory as Trajectory,
     project_state as project_state,
     simulate as simulate,
+)
+from ._keycld import (
+    KEYCLD_SCENES as KEYCLD_SCENES,
+    keycld_constraint as keycld_constraint,
+    keycld_model as keycld_model,
 )
 from ._learn import (
     AbstractLoss as AbstractLoss,

@@ -1,16 +1,181 @@
-"""Energy-shaping control in keypoint coordinates (KeyCLD eq. 15, appendix A.5)."""
+"""Controls: what `simulate`, the losses, the metrics and `identify` apply to a system.
+
+Every control is a final Equinox module with the one signature `u = control(t, x, xd)`, shape `(l,)`:
+
+- `ConstantControl`: one value for all time (KeyCLD's data hold one action per run);
+- `TimeVaryingControl`: a function of time `u(t)`;
+- `FeedbackControl`: a policy `u(t, x, xd)`;
+- `ZeroOrderHold`: sampled controls, each held until the next sample (recorded data);
+- `EnergyShaping`: the passivity-based controller of eq. 32.
+"""
+
+import abc
+import inspect
+from collections.abc import Callable
 
 import equinox as eqx
+import jax
 import jax.numpy as jnp
 import lineax as lx
-from jaxtyping import Array, Float
+import numpy as np
+from jaxtyping import Array, ArrayLike, Float
 
 from ._custom_types import ArrayInput, Control, Vector
 from ._linalg import SmallDense
 from ._system import ConstrainedLagrangian, check_array
 
 
-class EnergyShaping(eqx.Module):
+class AbstractControl(eqx.Module):
+    """A control law `u(t, x, xd)`: the inputs applied at time `t` in state `(x, xd)`.
+
+    Subclasses implement `__call__` and say whether the control reads the state (`depends_on_state`),
+    which lets solvers such as `RATTLE` skip the fixed-point iteration that a feedback needs.
+    """
+
+    depends_on_state: eqx.AbstractClassVar[bool]
+
+    @abc.abstractmethod
+    def __call__(self, t: Float[ArrayLike, ""], x: Vector, xd: Vector) -> Control:
+        """The controls at time `t` in state `(x, xd)`, shape `(l,)`."""
+
+
+class ConstantControl(AbstractControl):
+    """A control that does not change: $u(t) = u_0$.
+
+    **Arguments:**
+
+    - `value`: the controls, shape `(l,)`.
+
+    !!! example
+
+        ```python
+        traj = cldyn.simulate(system, x0, xd0, ts, control=cldyn.ConstantControl(jnp.array([0.5])))
+        ```
+    """
+
+    value: Float[Array, " l"]
+    depends_on_state = False
+
+    def __init__(self, value: ArrayInput):
+        value = jnp.asarray(value)
+        if value.ndim != 1:
+            raise ValueError(f"ConstantControl: value must have shape (l,), got {value.shape}")
+        self.value = value if jnp.issubdtype(value.dtype, jnp.floating) else value.astype(float)
+
+    def __call__(self, t, x, xd) -> Control:
+        del t, x, xd
+        return self.value
+
+
+class TimeVaryingControl(AbstractControl):
+    """A control given as a function of time, $u = f(t)$ (open loop).
+
+    **Arguments:**
+
+    - `fn`: `fn(t) -> (l,)`; an Equinox module (whose arrays are then parameters) or a function.
+    """
+
+    fn: Callable
+    depends_on_state = False
+
+    def __call__(self, t, x, xd) -> Control:
+        del x, xd
+        return jnp.asarray(self.fn(t))
+
+
+class FeedbackControl(AbstractControl):
+    """A state-feedback policy, $u = \\pi(t, x, \\dot x)$.
+
+    **Arguments:**
+
+    - `fn`: `fn(t, x, xd) -> (l,)`; an Equinox module or a function.
+    """
+
+    fn: Callable
+    depends_on_state = True
+
+    def __call__(self, t, x, xd) -> Control:
+        return jnp.asarray(self.fn(t, x, xd))
+
+
+class ZeroOrderHold(AbstractControl):
+    """Sampled controls, each held from its sample to the next: $u(t) = u_i$ for
+    $t_0 + i h \\le t < t_0 + (i + 1) h$.
+
+    How recorded data are applied: MuJoCo holds `ctrl` constant between samples, and the KeyCLD data
+    hold one action per run. Times before `t0` take the first value and times after the last sample
+    the last value.
+
+    **Arguments:**
+
+    - `values`: the controls at the samples, shape `(T, l)`.
+    - `dt`: the sampling interval `h`.
+    - `t0`: the time of the first sample.
+
+    !!! example
+
+        ```python
+        control = cldyn.ZeroOrderHold(data.u[0], dt=data.dt)
+        traj = cldyn.simulate(system, x0, xd0, data.ts, control=control, solver=cldyn.RK4())
+        ```
+    """
+
+    values: Float[Array, "T l"]
+    dt: float = eqx.field(static=True)
+    t0: float = eqx.field(static=True, default=0.0)
+    depends_on_state = False
+
+    def __check_init__(self):
+        if jnp.ndim(self.values) != 2:
+            raise ValueError(f"ZeroOrderHold: values must have shape (T, l), got {jnp.shape(self.values)}")
+        if not (np.isfinite(self.dt) and self.dt > 0):
+            raise ValueError(f"ZeroOrderHold: dt must be a positive interval, got {self.dt}")
+
+    def __call__(self, t, x, xd) -> Control:
+        del x, xd
+        # a relative margin: a step that lands on a sample time (up to rounding) takes that sample
+        position = (t - self.t0) / self.dt
+        index = jnp.floor(position + 1e-6 * jnp.maximum(1.0, jnp.abs(position))).astype(int)
+        return self.values[jnp.clip(index, 0, self.values.shape[0] - 1)]
+
+
+def as_control(control, num_inputs: int) -> AbstractControl | None:
+    """Normalise what users pass as `control=`: `None`, an `AbstractControl`, a constant `(l,)`
+    array, a function of time `u(t)` or a feedback policy `u(t, x, xd)` (told apart by the number of
+    required positional arguments)."""
+    if control is None or isinstance(control, AbstractControl):
+        return control
+    if callable(control):
+        try:
+            parameters = inspect.signature(control).parameters.values()
+        except (TypeError, ValueError):
+            parameters = ()
+        positional = [
+            p
+            for p in parameters
+            if p.kind in (p.POSITIONAL_ONLY, p.POSITIONAL_OR_KEYWORD) and p.default is p.empty
+        ]
+        if len(positional) == 1:
+            return TimeVaryingControl(control)
+        if len(positional) == 3:
+            return FeedbackControl(control)
+        raise ValueError(
+            "control must be a function of time u(t) or a feedback policy u(t, x, xd); "
+            f"got a callable with {len(positional)} required positional arguments"
+        )
+    return ConstantControl(check_array("control", control, (num_inputs,)))
+
+
+def check_control_shape(control: AbstractControl | None, num_inputs: int, t, x, xd) -> None:
+    """Raise a `ValueError` unless `control(t, x, xd)` has shape `(num_inputs,)` (checked by tracing)."""
+    if control is None:
+        return
+    shape = jax.eval_shape(control, t, x, xd).shape
+    if shape != (num_inputs,):
+        raise ValueError(f"control must return shape ({num_inputs},), got {shape}")
+
+
+class EnergyShaping(AbstractControl):
     """Passivity-based energy-shaping controller (eq. 32).
 
     $u = (g^T g)^{-1} g^T [\\nabla_x V(x) - k_p (x - x^*)] - k_d\\, g^T \\dot x$
@@ -57,6 +222,7 @@ class EnergyShaping(eqx.Module):
     limit: float | None = eqx.field(static=True)
     project: bool = eqx.field(static=True)
     damping: str = eqx.field(static=True)
+    depends_on_state = True
 
     def __init__(
         self,

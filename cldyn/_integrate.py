@@ -13,9 +13,8 @@ appendix A.9). Three remedies, chosen by `stabilisation`:
 construction.
 """
 
-import inspect
 from collections.abc import Callable
-from typing import Any, ClassVar
+from typing import ClassVar
 
 import diffrax as dfx
 import equinox as eqx
@@ -26,6 +25,7 @@ import numpy as np
 import optimistix as optx
 from jaxtyping import Array, Float
 
+from ._control import AbstractControl, as_control, check_control_shape
 from ._custom_types import ArrayInput, Vector
 from ._linalg import SmallDense
 from ._system import AbstractDynamics, ConstrainedLagrangian, check_array
@@ -162,61 +162,6 @@ def project_state(
     return x, _project_velocities(system, x, xd)
 
 
-# -- controls --------------------------------------------------------------------------------
-
-
-class _Control(eqx.Module):
-    """A control normalised to `u(t, x, xd)`; `None` means no input force at all."""
-
-    value: Any
-    kind: str = eqx.field(static=True)
-
-    def __call__(self, t, x, xd):
-        if self.kind == "none":
-            return None
-        if self.kind == "constant":
-            return self.value
-        if self.kind == "time":
-            return jnp.asarray(self.value(t))
-        return jnp.asarray(self.value(t, x, xd))
-
-
-def _control(control, system: AbstractDynamics) -> _Control:
-    num_inputs = system.num_inputs
-    if control is None:
-        return _Control(None, "none")
-    if callable(control):
-        try:
-            parameters = inspect.signature(control).parameters.values()
-        except (TypeError, ValueError):
-            parameters = ()
-        positional = [
-            p
-            for p in parameters
-            if p.kind in (p.POSITIONAL_ONLY, p.POSITIONAL_OR_KEYWORD) and p.default is p.empty
-        ]
-        if len(positional) == 1:
-            kind = "time"
-        elif len(positional) == 3:
-            kind = "feedback"
-        else:
-            raise ValueError(
-                "control must be a function of time u(t) or a feedback policy u(t, x, xd); "
-                f"got a callable with {len(positional)} required positional arguments"
-            )
-        return _Control(control, kind)
-    value = check_array("control", control, (num_inputs,))
-    return _Control(value, "constant")
-
-
-def _check_control_shape(control: _Control, system: AbstractDynamics, t, x, xd):
-    if control.kind in ("none", "constant"):
-        return
-    shape = jax.eval_shape(control, t, x, xd).shape
-    if shape != (system.num_inputs,):
-        raise ValueError(f"control must return shape ({system.num_inputs},), got {shape}")
-
-
 # -- solvers ---------------------------------------------------------------------------------
 
 
@@ -245,8 +190,8 @@ class RK4(dfx.AbstractERK):
         return 4
 
 
-def _forces(system: ConstrainedLagrangian, control: _Control, t, x, xd) -> Vector:
-    return system._force(x, xd, control(t, x, xd))
+def _forces(system: ConstrainedLagrangian, control: AbstractControl | None, t, x, xd) -> Vector:
+    return system._force(x, xd, None if control is None else control(t, x, xd))
 
 
 # Suzuki's five-stage symmetric composition: fourth order, with an error constant about ten times
@@ -341,7 +286,7 @@ class RATTLE(dfx.AbstractSolver):
             return w if system.num_constraints == 0 else _project_velocities(system, x1, w)
 
         v1 = kick(v_half)
-        if system.dissipation is not None or control.kind == "feedback":
+        if system.dissipation is not None or (control is not None and control.depends_on_state):
             v1 = kick(v1)
         return (x1, v1)
 
@@ -415,7 +360,7 @@ def _vector_field(stabilisation):
     def field(t, y, args):
         system, control, reference = args
         x, xd = y
-        u = control(t, x, xd)
+        u = None if control is None else control(t, x, xd)
         target = None
         if isinstance(stabilisation, Baumgarte) and isinstance(system, ConstrainedLagrangian) and (
             system.num_constraints > 0
@@ -483,7 +428,7 @@ def simulate(
     xd0: ArrayInput,
     ts: ArrayInput,
     *,
-    control: Any = None,
+    control: "AbstractControl | ArrayInput | Callable | None" = None,
     solver: dfx.AbstractSolver | None = None,
     stabilisation: AbstractStabilisation | None = _DEFAULT,
     dt0: float | None = None,
@@ -507,8 +452,9 @@ def simulate(
       error that says how far off it is, unless `project=True`.
     - `ts`: strictly increasing save times, shape `(T,)`; the integration runs from `ts[0]` to
       `ts[-1]`.
-    - `control`: `None` (no input), a constant `(l,)` array, a function of time `u(t)`, or a feedback
-      policy `u(t, x, xd)` such as `cldyn.EnergyShaping`.
+    - `control`: `None` (no input), any `cldyn.AbstractControl` (`ConstantControl`, `ZeroOrderHold`,
+      `EnergyShaping`, ...), or as shorthands a constant `(l,)` array, a function of time `u(t)` or a
+      feedback policy `u(t, x, xd)`.
     - `solver`: any diffrax ODE solver, `cldyn.RK4()` or `cldyn.RATTLE()`; `diffrax.Tsit5()` by
       default.
     - `stabilisation`: `Projection()` (default), `Baumgarte(alpha, beta)` or `None`. `RATTLE`
@@ -558,8 +504,8 @@ def simulate(
         raise ValueError("RATTLE needs a constant mass matrix; use an RK solver with Projection()")
     if isinstance(solver, RATTLE) and isinstance(stabilisation, Baumgarte):
         raise ValueError("RATTLE satisfies the constraints itself; use stabilisation=None with it")
-    control = _control(control, system)
-    _check_control_shape(control, system, ts[0], x0, xd0)
+    control = as_control(control, system.num_inputs)
+    check_control_shape(control, system.num_inputs, ts[0], x0, xd0)
 
     if concrete_ts is not None and _is_concrete(x0, xd0, reference, system):
         _check_inputs(system, x0, xd0, concrete_ts, reference, project)
@@ -671,7 +617,7 @@ def _simulate(
         # the projected state) are projected too; at a step end this reproduces the step's projection
         project = jax.vmap(lambda x, xd: project_state(system, x, xd, reference=reference))
         xs, xds = project(xs, xds)
-    if control.kind == "none":
+    if control is None:
         us = jnp.zeros((ts.shape[0], system.num_inputs), dtype=x0.dtype)
     else:
         us = jax.vmap(lambda t, x, xd: jnp.broadcast_to(control(t, x, xd), (system.num_inputs,)))(

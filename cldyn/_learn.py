@@ -28,6 +28,7 @@ import numpy as np
 import optax
 from jaxtyping import Array, Float, PRNGKeyArray
 
+from ._control import ZeroOrderHold
 from ._custom_types import ArrayInput, Scalar
 from ._integrate import AbstractStabilisation, project_state, simulate
 from ._system import AbstractDynamics, ConstrainedLagrangian
@@ -387,17 +388,6 @@ class Collocation(AbstractLoss):
         return _squared_norm(xdd - predicted)
 
 
-class _PiecewiseConstant(eqx.Module):
-    """The control `u(t) = values[floor(t / dt)]`: each sample's control held until the next."""
-
-    values: Float[Array, "T l"]
-    dt: float = eqx.field(static=True)
-
-    def __call__(self, t):
-        index = jnp.clip(jnp.floor(t / self.dt + 1e-6).astype(int), 0, self.values.shape[0] - 1)
-        return self.values[index]
-
-
 class Rollout(AbstractLoss):
     """A multi-step rollout loss: from every state, predict the next `steps` positions.
 
@@ -461,7 +451,7 @@ class Rollout(AbstractLoss):
 
             def run(a, b, c):
                 traj = simulate(
-                    model, a, b, ts, control=_PiecewiseConstant(c, h), solver=self.solver, dt0=h,
+                    model, a, b, ts, control=ZeroOrderHold(c, h), solver=self.solver, dt0=h,
                     stabilisation=self.stabilisation, project=constrained,
                 )
                 return traj.x[1:]
@@ -534,7 +524,7 @@ class MultipleShooting(AbstractLoss):
 
         def run(a, b, c):
             traj = simulate(
-                model, a, b, ts, control=_PiecewiseConstant(c, h), solver=solver,
+                model, a, b, ts, control=ZeroOrderHold(c, h), solver=solver,
                 stabilisation=self.stabilisation, project=constrained, dt0=dt0,
             )
             return traj.x[1:]

@@ -19,7 +19,8 @@ SPEC_NAME = "fit.json"
 
 def build_model(spec: dict, key):
     """The untrained model that `spec` (the `model` entry of `fit.json`) describes."""
-    from ._baselines import SecondOrderNeuralODE, keycld_constraint, keycld_model
+    from ._baselines import SecondOrderNeuralODE
+    from ._keycld import keycld_constraint, keycld_model
 
     kind, size, inputs = spec["kind"], int(spec["size"]), int(spec["num_inputs"])
     if kind not in MODELS:

@@ -14,8 +14,9 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Float
 
+from ._control import ZeroOrderHold
 from ._integrate import RK4, AbstractStabilisation, Projection, simulate
-from ._learn import Sequences, _PiecewiseConstant, central_difference
+from ._learn import Sequences, central_difference
 from ._system import AbstractDynamics, ConstrainedLagrangian
 
 
@@ -191,7 +192,7 @@ def _rollouts(model, x0, xd0, controls, ts, *, dt, solver, dt0, stabilisation):
 
     def run(a, b, c):
         traj = simulate(
-            model, a, b, ts, control=_PiecewiseConstant(c, dt), solver=solver, dt0=dt0,
+            model, a, b, ts, control=ZeroOrderHold(c, dt), solver=solver, dt0=dt0,
             stabilisation=stabilisation, project=constrained,
         )
         return traj.x, traj.xd
