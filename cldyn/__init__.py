@@ -112,6 +112,12 @@ from ._potential import (
     Spring as Spring,
     Sum as Sum,
 )
+from ._progress import (
+    AbstractProgressMeter as AbstractProgressMeter,
+    NoProgressMeter as NoProgressMeter,
+    TextProgressMeter as TextProgressMeter,
+    TqdmProgressMeter as TqdmProgressMeter,
+)
 from ._system import (
     AbstractDynamics as AbstractDynamics,
     ConstrainedLagrangian as ConstrainedLagrangian,
