@@ -202,10 +202,14 @@ class JointMap(eqx.Module):
     - `forward`: `F(q)`, from `(m,)` joint coordinates to `(k,)` keypoint coordinates.
     - `inverse`: `q(x)`, its inverse on the constraint manifold.
     - `names`: a name for each joint coordinate.
+
+    `forward` and `inverse` may be plain functions or Equinox modules; a module's arrays stay arrays of
+    the map (not constants baked into a compiled program), so maps that differ only in numbers share
+    one compilation.
     """
 
-    forward: Callable = eqx.field(static=True)
-    inverse: Callable = eqx.field(static=True)
+    forward: Callable
+    inverse: Callable
     names: tuple[str, ...] = eqx.field(static=True)
 
     @property

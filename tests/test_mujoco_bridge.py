@@ -4,6 +4,9 @@ Every expected number here comes from MuJoCo (its keypoint kinematics `J qacc + 
 integration), never from the code under test. Float64 throughout (conftest).
 """
 
+import xml.etree.ElementTree as ET
+
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -12,8 +15,10 @@ import pytest
 mujoco = pytest.importorskip("mujoco")
 
 import cldyn  # noqa: E402
-from cldyn.mujoco import from_mjcf, record, validate  # noqa: E402
+from cldyn.mujoco import from_mjcf, keycld_scene, record, validate  # noqa: E402
 from cldyn.mujoco._scenes import load_model  # noqa: E402
+
+pytestmark = pytest.mark.mujoco
 
 ACCEL_RTOL = 1e-9  # cldyn's xdd against MuJoCo's, relative to the largest component
 MAP_ATOL = 1e-12  # the joint maps against MuJoCo's keypoints (m, m/s)
@@ -365,3 +370,68 @@ def test_mass_equals_the_rigid_body_blocks():
         num_keypoints=2,
     )
     np.testing.assert_allclose(bridge.system.mass.matrix(), expected.matrix(), rtol=1e-12, atol=1e-14)
+
+
+# -- one compilation per structure ------------------------------------------------------------------
+
+
+def _traced_step():
+    """An `eqx.filter_jit` function of a bridge that counts its traces, and a MuJoCo reference."""
+    traces = []
+
+    @eqx.filter_jit
+    def step(bridge, q, qd, u):
+        traces.append(None)
+        x, xd = bridge.joints.to_keypoints(q, qd)
+        xdd = bridge.system.acceleration(x, xd, u)
+        # joint accelerations: the time derivative of qd(x, xd) along (xd, xdd)
+        qdd = jax.jvp(lambda y, v: bridge.joints.to_joints(y, v)[1], (x, xd), (xd, xdd))[1]
+        return qdd
+
+    return step, traces
+
+
+def _mujoco_qacc(xml, q, qd, u):
+    model = mujoco.MjModel.from_xml_string(xml)
+    data = mujoco.MjData(model)
+    data.qpos[:], data.qvel[:], data.ctrl[:] = q, qd, u
+    mujoco.mj_forward(model, data)
+    return np.array(data.qacc)
+
+
+def _resized_acrobot() -> str:
+    """The KeyCLD acrobot with other link lengths and masses: the same structure, other numbers."""
+    root = ET.fromstring(keycld_scene("acrobot"))
+    root.find(".//geom[@name='upper_arm']").set("fromto", "0 0 0 0 0 0.8")
+    root.find(".//body[@name='lower_arm']").set("pos", "0 0 0.8")
+    lower = root.find(".//geom[@name='lower_arm']")
+    lower.set("fromto", "0 0 0 0 0 1.3")
+    lower.set("mass", "1.7")
+    root.find(".//site[@name='tip']").set("pos", "0 0 1.3")
+    return ET.tostring(root, encoding="unicode")
+
+
+def test_same_scene_built_twice_compiles_once():
+    first, second = from_mjcf("keycld/acrobot"), from_mjcf("keycld/acrobot")
+    assert first is not second  # two builds, no cache
+    assert jax.tree_util.tree_structure(first) == jax.tree_util.tree_structure(second)
+    step, traces = _traced_step()
+    q, qd, u = jnp.array([0.3, -1.1]), jnp.array([0.7, 0.2]), jnp.array([0.4, -0.3])
+    a, b = step(first, q, qd, u), step(second, q, qd, u)
+    assert len(traces) == 1
+    np.testing.assert_array_equal(a, b)
+
+
+def test_scenes_differing_in_numbers_share_one_compilation():
+    """Other lengths and masses reuse the program, and the program uses the new numbers: the joint
+    accelerations agree with MuJoCo's for each scene."""
+    resized = _resized_acrobot()
+    step, traces = _traced_step()
+    q, qd, u = jnp.array([0.3, -1.1]), jnp.array([0.7, 0.2]), jnp.array([0.4, -0.3])
+    results = {}
+    for xml in (keycld_scene("acrobot"), resized):
+        results[xml] = np.asarray(step(from_mjcf(xml), q, qd, u))
+        expected = _mujoco_qacc(xml, q, qd, u)
+        assert np.max(np.abs(results[xml] - expected)) < ACCEL_RTOL * np.max(np.abs(expected))
+    assert len(traces) == 1
+    assert np.max(np.abs(results[resized] - results[keycld_scene("acrobot")])) > 0.1

@@ -20,14 +20,26 @@ import jax.numpy as jnp
 import mujoco
 import numpy as np
 
-from .._constraint import AbstractConstraint, Anchor, Distance, FixedCoordinate, FromFunction, Stack
-from .._coordinates import AbstractCoordinate, HingeAngle, JointMap, SliderPosition, wrap_angle
+from .._constraint import AbstractConstraint, Anchor, Distance, FixedCoordinate, Stack
+from .._coordinates import AbstractCoordinate, HingeAngle, JointMap, SliderPosition
 from .._dissipation import JointDamping
 from .._input import JointInput
 from .._mass import ConstantMass, JointArmature
 from .._potential import AbstractPotential, Gravity, JointSpring
 from .._system import ConstrainedLagrangian
-from ._scenes import load_model, scene_xml
+from ._checks import actuator_name, check_include, check_supported
+from ._frames import (
+    Affine,
+    BilinearConstraint,
+    ForwardKinematics,
+    FrameAngle,
+    FrameSlide,
+    InverseKinematics,
+    LinearConstraint,
+    NormConstraint,
+    cmat,
+)
+from ._scenes import load_model
 from ._tree import (
     _HINGE,
     TOL,
@@ -38,54 +50,13 @@ from ._tree import (
     build_tree,
     find_plane,
     joint_name,
-    name_of,
     reference_data,
     select_keypoints,
 )
 
-INCLUDABLE = ("damping", "stiffness", "armature")
-
-
-def _cmat(c: np.ndarray) -> np.ndarray:
-    """Left multiplication by the complex number `c` as a 2x2 matrix."""
-    return np.array([[c[0], -c[1]], [c[1], c[0]]])
-
 
 def _conj(c: np.ndarray) -> np.ndarray:
     return np.array([c[0], -c[1]])
-
-
-@dataclasses.dataclass(frozen=True)
-class _Affine:
-    """`y(x) = matrix @ x + const`, planar: `matrix` `(2, k)`, `const` `(2,)`."""
-
-    matrix: np.ndarray
-    const: np.ndarray
-
-    def left(self, a: np.ndarray) -> "_Affine":
-        """`a @ y(x)` for a `(2, 2)` matrix `a`."""
-        return _Affine(a @ self.matrix, a @ self.const)
-
-    def __add__(self, other: "_Affine") -> "_Affine":
-        return _Affine(self.matrix + other.matrix, self.const + other.const)
-
-    def __sub__(self, other: "_Affine") -> "_Affine":
-        return _Affine(self.matrix - other.matrix, self.const - other.const)
-
-    @property
-    def is_constant(self) -> bool:
-        return not np.any(self.matrix)
-
-    def static(self) -> tuple:
-        return (
-            tuple(tuple(float(v) for v in row) for row in self.matrix),
-            tuple(float(v) for v in self.const),
-        )
-
-
-def _evaluate(affine: tuple, x):
-    matrix, const = affine
-    return jnp.asarray(matrix, dtype=x.dtype) @ x + jnp.asarray(const, dtype=x.dtype)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -101,53 +72,20 @@ class _Segment:
 class _Frame:
     """A rigid group's pose, affine in the keypoints (see the module docstring)."""
 
-    origin: _Affine
+    origin: Affine
     origin0: np.ndarray
-    rotation: _Affine
+    rotation: Affine
     # How HingeAngle can read the orientation: "fixed" for a group that never rotates, a segment,
     # or None when only the general frame can.
     segment: "_Segment | str | None"
 
-    def point(self, y0: np.ndarray) -> _Affine:
+    def point(self, y0: np.ndarray) -> Affine:
         """The current position of the group's point with reference position `y0`."""
-        return self.origin + self.rotation.left(_cmat(y0 - self.origin0))
+        return self.origin + self.rotation.left(cmat(y0 - self.origin0))
 
     @property
     def rotates(self) -> bool:
         return not self.rotation.is_constant
-
-
-class _FrameAngle(AbstractCoordinate):
-    """A hinge angle read from two rigid groups' frames: `wrap(s * arg(z_child conj(z_parent)) - q0)`.
-
-    Used where `HingeAngle` cannot express the hinge (its anchor is no keypoint).
-    """
-
-    child: tuple = eqx.field(static=True)
-    parent: tuple = eqx.field(static=True)
-    sign: float = eqx.field(static=True)
-    offset: float = eqx.field(static=True)
-
-    def __call__(self, x):
-        zc, zp = _evaluate(self.child, x), _evaluate(self.parent, x)
-        cross = zp[0] * zc[1] - zp[1] * zc[0]
-        dot = zp[0] * zc[0] + zp[1] * zc[1]
-        return wrap_angle(self.sign * jnp.arctan2(cross, dot) - self.offset)
-
-
-class _FrameSlide(AbstractCoordinate):
-    """A slide position read from frames: `q(x) = d(x) . u(x) - q0`, with `d` the displacement of the
-    sliding keypoint from its reference point in the parent and `u` the slide axis, both affine.
-
-    Used where `SliderPosition` cannot express the slide (a slide on a moving parent).
-    """
-
-    displacement: tuple = eqx.field(static=True)
-    axis: tuple = eqx.field(static=True)
-    offset: float = eqx.field(static=True)
-
-    def __call__(self, x):
-        return jnp.dot(_evaluate(self.displacement, x), _evaluate(self.axis, x)) - self.offset
 
 
 class MujocoModel(eqx.Module):
@@ -192,117 +130,6 @@ class MujocoModel(eqx.Module):
         return self.joint_coordinates[self.joint_names.index(joint)]
 
 
-# -- checks: the class of models this bridge is exact for ------------------------------------------
-
-
-def _check_supported(model: mujoco.MjModel, tree: Tree) -> None:
-    if model.ntendon:
-        name = name_of(model, mujoco.mjtObj.mjOBJ_TENDON, 0, "tendon")
-        raise ValueError(f"tendon {name!r}: tendons are not supported by from_mjcf")
-    if model.neq and not model.opt.disableflags & mujoco.mjtDisableBit.mjDSBL_EQUALITY:
-        name = name_of(model, mujoco.mjtObj.mjOBJ_EQUALITY, 0, "equality")
-        raise ValueError(f"equality constraint {name!r}: equality constraints are not supported by from_mjcf")
-    if getattr(model, "nflex", 0):
-        raise ValueError("flex elements (deformable bodies) are not supported by from_mjcf")
-    for g in tree.moving:
-        joints = tree.joints[g]
-        if len(joints) > 1:
-            names = [joint_name(model, j) for j in joints]
-            raise ValueError(
-                f"body {body_name(model, g)!r} has {len(joints)} joints {names}; from_mjcf supports one "
-                "hinge or slide per body (nest bodies to chain joints)"
-            )
-    for b in range(1, model.nbody):
-        if model.body_gravcomp[b] != 0:
-            raise ValueError(f"body {body_name(model, b)!r} has gravcomp, which from_mjcf does not model")
-    if model.opt.density > 0 or model.opt.viscosity > 0:
-        raise ValueError("fluid forces (option density/viscosity) are not modelled by from_mjcf")
-    _check_contacts(model, tree)
-    _check_actuators(model)
-
-
-def _check_contacts(model: mujoco.MjModel, tree: Tree) -> None:
-    flags = model.opt.disableflags
-    if flags & (mujoco.mjtDisableBit.mjDSBL_CONTACT | mujoco.mjtDisableBit.mjDSBL_CONSTRAINT):
-        return
-    filter_parent = not flags & mujoco.mjtDisableBit.mjDSBL_FILTERPARENT
-    excluded = set(int(s) for s in model.exclude_signature)
-
-    def collide(g1, g2, b1, b2):
-        if g1 == g2 or g1 == 0 or g2 == 0:
-            return False
-        if filter_parent and (tree.parent[g1] == g2 or tree.parent[g2] == g1):
-            return False
-        return ((min(b1, b2) << 16) + max(b1, b2)) not in excluded
-
-    for i in range(model.npair):
-        a, b = int(model.pair_geom1[i]), int(model.pair_geom2[i])
-        ba, bb = int(model.geom_bodyid[a]), int(model.geom_bodyid[b])
-        if tree.group[ba] and tree.group[bb] and tree.group[ba] != tree.group[bb]:
-            raise ValueError(
-                f"contact pair {_geom(model, a)!r}-{_geom(model, b)!r} between moving bodies "
-                "is not supported by from_mjcf"
-            )
-    geoms = range(model.ngeom)
-    for a in geoms:
-        for b in range(a + 1, model.ngeom):
-            ba, bb = int(model.geom_bodyid[a]), int(model.geom_bodyid[b])
-            if not collide(int(tree.group[ba]), int(tree.group[bb]), ba, bb):
-                continue
-            if (model.geom_contype[a] & model.geom_conaffinity[b]) or (
-                model.geom_contype[b] & model.geom_conaffinity[a]
-            ):
-                raise ValueError(
-                    f"geoms {_geom(model, a)!r} and {_geom(model, b)!r} on moving bodies "
-                    f"{body_name(model, ba)!r} and {body_name(model, bb)!r} can collide; from_mjcf does "
-                    "not model contacts (disable contact, or set contype/conaffinity)"
-                )
-
-
-def _geom(model, g: int) -> str:
-    return name_of(model, mujoco.mjtObj.mjOBJ_GEOM, g, "geom")
-
-
-def _actuator(model, a: int) -> str:
-    return name_of(model, mujoco.mjtObj.mjOBJ_ACTUATOR, a, "actuator")
-
-
-def _check_actuators(model: mujoco.MjModel) -> None:
-    for a in range(model.nu):
-        trn = mujoco.mjtTrn(int(model.actuator_trntype[a]))
-        if trn != mujoco.mjtTrn.mjTRN_JOINT:
-            raise ValueError(
-                f"actuator {_actuator(model, a)!r} uses a {trn.name} transmission; from_mjcf supports "
-                "motors on hinge and slide joints"
-            )
-        plain = (
-            model.actuator_dyntype[a] == mujoco.mjtDyn.mjDYN_NONE
-            and model.actuator_gaintype[a] == mujoco.mjtGain.mjGAIN_FIXED
-            and model.actuator_biastype[a] == mujoco.mjtBias.mjBIAS_NONE
-        )
-        if not plain:
-            raise ValueError(
-                f"actuator {_actuator(model, a)!r} is not a motor (its force depends on state or "
-                "activation); from_mjcf supports <motor> actuators"
-            )
-
-
-def _check_include(include) -> tuple[str, ...]:
-    if isinstance(include, str):
-        include = (include,)
-    include = tuple(include)
-    for name in include:
-        if name == "frictionloss":
-            raise ValueError(
-                "include: frictionloss is dry friction, a constraint in MuJoCo, not a smooth force, so "
-                "it cannot be included exactly; cldyn.JointCoulomb approximates it. Allowed: "
-                f"{', '.join(INCLUDABLE)}"
-            )
-        if name not in INCLUDABLE:
-            raise ValueError(f"include: unknown effect {name!r}; allowed: {', '.join(INCLUDABLE)}")
-    return include
-
-
 # -- the build -------------------------------------------------------------------------------------
 
 
@@ -327,13 +154,13 @@ class _Build:
         self.mass = np.zeros((self.size, self.size))
         self.weights = np.zeros(self.size)
 
-    def constant(self, value: np.ndarray) -> _Affine:
-        return _Affine(np.zeros((2, self.size)), np.asarray(value, dtype=float))
+    def constant(self, value: np.ndarray) -> Affine:
+        return Affine(np.zeros((2, self.size)), np.asarray(value, dtype=float))
 
-    def select(self, i: int) -> _Affine:
+    def select(self, i: int) -> Affine:
         matrix = np.zeros((2, self.size))
         matrix[:, 2 * i : 2 * i + 2] = np.eye(2)
-        return _Affine(matrix, np.zeros(2))
+        return Affine(matrix, np.zeros(2))
 
     def name(self, i: int) -> str:
         return self.keypoints[i].name
@@ -374,7 +201,7 @@ class _Build:
 
         def frame_for(k):
             w0 = self.x0[k] - anchor
-            rotation = (self.select(k) - origin).left(_cmat(_conj(w0) / np.dot(w0, w0)))
+            rotation = (self.select(k) - origin).left(cmat(_conj(w0) / np.dot(w0, w0)))
             segment = None
             if origin_index is not None:
                 segment = _Segment(origin_index, k, None)
@@ -389,7 +216,7 @@ class _Build:
         elif origin.is_constant:
             self.constraints.append(Anchor(head, origin.const))
         else:
-            self.constraints.append(_norm_constraint(self.select(head) - origin))
+            self.constraints.append(NormConstraint((self.select(head) - origin).map()))
         self._attach(frame, [i for i in new if i not in (head, origin_index)])
 
         sign = float(np.sign(np.dot(self.data.xaxis[j], self.plane.normal)))
@@ -422,7 +249,7 @@ class _Build:
                     sign=sign,
                     offset=float(sign * phi0 - qpos0),
                 )
-        return _FrameAngle(frame.rotation.static(), parent.rotation.static(), sign, -qpos0)
+        return FrameAngle(frame.rotation.map(), parent.rotation.map(), sign, jnp.asarray(-qpos0))
 
     def _slide(self, g, j, parent: _Frame, on_group, new, anchor):
         model = self.model
@@ -450,15 +277,17 @@ class _Build:
             else:
                 self.linear_rows.append(row[None, :])
         else:
-            self.constraints.append(_bilinear_constraint(displacement, parent.rotation.left(_cmat(normal))))
+            self.constraints.append(
+                BilinearConstraint(displacement.map(), parent.rotation.left(cmat(normal)).map())
+            )
         self._attach(frame, [i for i in new if i != k])
 
         qpos0 = float(model.qpos0[model.jnt_qposadr[j]])
         if _on_world(self.tree, g):
             self.coordinates[j] = SliderPosition(k, axis=axis, origin=self.x0[k], offset=-qpos0)
         else:
-            self.coordinates[j] = _FrameSlide(
-                displacement.static(), parent.rotation.left(_cmat(axis)).static(), -qpos0
+            self.coordinates[j] = FrameSlide(
+                displacement.map(), parent.rotation.left(cmat(axis)).map(), jnp.asarray(-qpos0)
             )
         return frame, [frame_for(i) for i in on_group]
 
@@ -493,7 +322,7 @@ class _Build:
         constraints = list(self.constraints)
         if self.linear_rows:
             rows = np.concatenate(self.linear_rows, axis=0)
-            constraints.append(_linear_constraint(rows))
+            constraints.append(LinearConstraint(jnp.asarray(rows, dtype=float)))
         if not constraints:
             return None
         return Stack(constraints)
@@ -516,83 +345,27 @@ def _on_world(tree: Tree, g: int) -> bool:
     return tree.parent[g] == 0
 
 
-def _linear_constraint(rows: np.ndarray) -> FromFunction:
-    """Linear constraints `rows @ x = const`: points attached to a frame, slides on a fixed line."""
-
-    def phi(x):
-        return jnp.asarray(rows, dtype=x.dtype) @ x
-
-    return FromFunction(phi, rows.shape[0])
-
-
-def _norm_constraint(difference: _Affine) -> FromFunction:
-    """`|d(x)| = const` for an affine `d`: a keypoint at a fixed distance from a hinge anchor that is
-    no keypoint itself."""
-    static = difference.static()
-
-    def phi(x):
-        d = _evaluate(static, x)
-        return jnp.sqrt(jnp.sum(d**2))[None]
-
-    return FromFunction(phi, 1)
-
-
-def _bilinear_constraint(displacement: _Affine, normal: _Affine) -> FromFunction:
-    """`d(x) . n(x) = const`: a keypoint slides along a line fixed in a rotating parent."""
-    d, n = displacement.static(), normal.static()
-
-    def phi(x):
-        return jnp.dot(_evaluate(d, x), _evaluate(n, x))[None]
-
-    return FromFunction(phi, 1)
-
-
-def _forward_map(build: _Build):
+def _forward_map(build: _Build) -> ForwardKinematics:
     """`qpos -> x`: planar forward kinematics of the tree, from the reference configuration."""
     model, tree, plane, data = build.model, build.tree, build.plane, build.data
-    steps = []
-    for g in tree.moving:
-        j = tree.joints[g][0]
-        hinge = model.jnt_type[j] == _HINGE
-        anchor = plane.project(data.xanchor[j])
-        axis = plane.project(data.xaxis[j])
-        sign = float(np.sign(np.dot(data.xaxis[j], plane.normal)))
-        steps.append(
-            (
-                g,
-                tree.parent[g],
-                hinge,
-                anchor,
-                axis / max(np.linalg.norm(axis), TOL),
-                sign,
-                int(model.jnt_qposadr[j]),
-                float(model.qpos0[model.jnt_qposadr[j]]),
-            )
-        )
-    x0 = build.x0
-    homes = list(build.introduced)
+    index = {0: -1} | {g: i for i, g in enumerate(tree.moving)}
+    joints = [tree.joints[g][0] for g in tree.moving]
+    axes = [plane.project(data.xaxis[j]) for j in joints]
+    return ForwardKinematics(
+        parents=tuple(index[tree.parent[g]] for g in tree.moving),
+        hinges=tuple(bool(model.jnt_type[j] == _HINGE) for j in joints),
+        addresses=tuple(int(model.jnt_qposadr[j]) for j in joints),
+        homes=tuple(index[g] for g in build.introduced),
+        anchors=_array([plane.project(data.xanchor[j]) for j in joints], (len(joints), 2)),
+        axes=_array([a / max(np.linalg.norm(a), TOL) for a in axes], (len(joints), 2)),
+        signs=_array([np.sign(np.dot(data.xaxis[j], plane.normal)) for j in joints], (len(joints),)),
+        qpos0=_array([model.qpos0[model.jnt_qposadr[j]] for j in joints], (len(joints),)),
+        reference=_array(build.x0, (len(build.keypoints), 2)),
+    )
 
-    def rotation(angle):
-        c, s = jnp.cos(angle), jnp.sin(angle)
-        return jnp.stack([jnp.stack([c, -s]), jnp.stack([s, c])])
 
-    def forward(qpos):
-        angle = {0: jnp.zeros((), dtype=qpos.dtype)}
-        shift = {0: jnp.zeros(2, dtype=qpos.dtype)}
-        for g, p, hinge, anchor, axis, sign, adr, q0 in steps:
-            dq = qpos[adr] - q0
-            parent_rotation = rotation(angle[p])
-            if hinge:
-                phi = sign * dq
-                angle[g] = angle[p] + phi
-                shift[g] = parent_rotation @ (anchor - rotation(phi) @ anchor) + shift[p]
-            else:
-                angle[g] = angle[p]
-                shift[g] = parent_rotation @ (axis * dq) + shift[p]
-        points = [rotation(angle[h]) @ x0[i] + shift[h] for i, h in enumerate(homes)]
-        return jnp.concatenate(points)
-
-    return forward
+def _array(values, shape) -> jnp.ndarray:
+    return jnp.asarray(np.asarray(values, dtype=float).reshape(shape))
 
 
 def _check_rank(constraint: AbstractConstraint | None, x0: np.ndarray, dof: int, model, keypoints) -> None:
@@ -647,7 +420,10 @@ def from_mjcf(
       (`JointArmature`). Left out by default: the nominal model.
 
     **Returns:** a `MujocoModel` with the `system`, the `joints` map and the names of keypoints,
-    joints and actuators. Build it after `jax.config.update("jax_enable_x64", True)` for float64.
+    joints and actuators. Its arrays are float64 when it is built in JAX's 64-bit mode. Every number
+    of the scene (lengths, anchors, masses, gears) is an array of the model and only its structure is
+    static, so the same scene built twice, or two scenes that differ only in such numbers, run through
+    one compiled program of an `eqx.filter_jit` function that takes the model.
 
     !!! example
 
@@ -657,32 +433,12 @@ def from_mjcf(
         xdd = bridge.system.acceleration(x, xd, jnp.array([0.5, 0.0]))
         ```
     """
-    key = (
-        scene_xml(mjcf),
-        None if keypoints is None else tuple(keypoints),
-        tuple(include),
-        bool(jax.config.jax_enable_x64),
-    )
-    if key not in _BUILT:
-        if len(_BUILT) >= _BUILT_MAX:
-            _BUILT.pop(next(iter(_BUILT)))
-        _BUILT[key] = _from_mjcf(mjcf, keypoints=keypoints, include=include)
-    return _BUILT[key]
-
-
-# Built models are immutable; handing out the same object for the same scene lets every jitted function
-# that takes it hit JAX's compilation cache (the joint maps are static functions, new at every build).
-_BUILT: dict = {}
-_BUILT_MAX = 32
-
-
-def _from_mjcf(mjcf, *, keypoints, include) -> "MujocoModel":
-    include = _check_include(include)
+    include = check_include(include)
     model, _, _ = load_model(mjcf)
     data = reference_data(model)
     plane = find_plane(model, data)
     tree = build_tree(model)
-    _check_supported(model, tree)
+    check_supported(model, tree)
     chosen = select_keypoints(model, data, tree, plane, keypoints)
     for k in chosen:
         if 0 in k.groups:
@@ -752,18 +508,13 @@ def _from_mjcf(mjcf, *, keypoints, include) -> "MujocoModel":
         dissipation=dissipation,
         armature=armature,
     )
-    inverse_coordinates = coordinates
-
-    def inverse(x):
-        return jnp.stack([c(x) for c in inverse_coordinates])
-
     return MujocoModel(
         system=system,
-        joints=JointMap(_forward_map(build), inverse, joint_names),
+        joints=JointMap(_forward_map(build), InverseKinematics(coordinates), joint_names),
         keypoint_names=tuple(k.name for k in chosen),
         joint_names=joint_names,
         joint_coordinates=coordinates,
-        actuator_names=tuple(_actuator(model, a) for a in range(model.nu)),
+        actuator_names=tuple(actuator_name(model, a) for a in range(model.nu)),
         actuator_joints=tuple(joint_names[j] for j in actuated),
         basis=tuple(tuple(float(v) + 0.0 for v in row) for row in plane.basis),
         include=include,

@@ -6,7 +6,6 @@ the exact scene it came from. KeyCLD's scenes are made by editing dm_control's s
 
 import copy
 import functools
-import importlib
 import os
 import pathlib
 import warnings
@@ -15,15 +14,17 @@ from collections.abc import Callable
 
 import mujoco
 
+from .._keycld import KEYCLD_SCENES
+from .._misc import optional_import
+
 _KEYCLD_PREFIX = "keycld/"
-KEYCLD_SCENES = ("pendulum", "cartpole", "acrobot")
 
 
 def _import_quietly(name: str):
     """Import a dm_control module without the warning that no display is there for GLFW rendering."""
     with warnings.catch_warnings():
         warnings.filterwarnings("ignore", module="glfw")
-        return importlib.import_module(name)
+        return optional_import(name, purpose="dm_control's suite scenes")
 
 
 def _suite_domains() -> tuple[str, ...]:
