@@ -28,7 +28,7 @@ bench: $(STAMP)
 	$(BIN)/python benchmarks/acceleration.py
 
 docs: $(STAMP)
-	$(BIN)/python docs/make_api.py
+	NO_MKDOCS_2_WARNING=1 $(BIN)/mkdocs build --strict --site-dir site
 
 clean:
 	rm -rf $(VENV) build dist *.egg-info

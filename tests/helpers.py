@@ -45,6 +45,8 @@ class ChainReference:
     gravity: float = 9.81
     gears: tuple = ()
     actuated: tuple = ()
+    # rotor inertia on each relative joint angle: 1/2 a_j qd_j^2 (MuJoCo's armature)
+    armatures: tuple = ()
 
     @property
     def n(self):
@@ -73,6 +75,8 @@ class ChainReference:
         omega = jnp.cumsum(qd)
         m, inertia = jnp.array(self.masses), jnp.array(self.inertias)
         kinetic = 0.5 * jnp.sum(m * jnp.sum(cd**2, axis=1)) + 0.5 * jnp.sum(inertia * omega**2)
+        for a, rate in zip(self.armatures, qd):
+            kinetic = kinetic + 0.5 * a * rate**2
         potential = self.gravity * jnp.sum(m * c[:, 1])
         return kinetic - potential
 
@@ -120,8 +124,12 @@ class CartpoleReference:
         return force
 
 
-def euler_lagrange_acceleration(reference, q, qd, u):
-    """`qdd` from `d/dt dL/dqd - dL/dq = Q`, by autodiff of the reference Lagrangian."""
+def euler_lagrange_acceleration(reference, q, qd, u, force=None):
+    """`qdd` from `d/dt dL/dqd - dL/dq = Q`, by autodiff of the reference Lagrangian.
+
+    `force(q, qd)`, if given, is an extra generalised force (damping, friction, drag on a joint),
+    written in joint space independently of cldyn's Cartesian terms.
+    """
     mass = jax.hessian(reference.lagrangian, argnums=1)(q, qd)
     mixed = jax.jacfwd(jax.grad(reference.lagrangian, argnums=1), argnums=0)(q, qd)
     rhs = (
@@ -129,7 +137,21 @@ def euler_lagrange_acceleration(reference, q, qd, u):
         - mixed @ qd
         + reference.generalized_force(q, u)
     )
+    if force is not None:
+        rhs = rhs + force(q, qd)
     return jnp.linalg.solve(mass, rhs)
+
+
+def reference_energy(reference, q, qd):
+    """The reference's energy `E = qd . dL/dqd - L` (its Hamiltonian)."""
+    return jnp.dot(qd, jax.grad(reference.lagrangian, argnums=1)(q, qd)) - reference.lagrangian(q, qd)
+
+
+def joint_acceleration(reference, q, qd, xdd):
+    """The `qdd` whose keypoint acceleration `J qdd + Jd qd` is `xdd`, through the reference's `F(q)`."""
+    jac = jax.jacfwd(reference.keypoints)(q)
+    _, drift = jax.jvp(lambda q_: jax.jvp(reference.keypoints, (q_,), (qd,))[1], (q,), (qd,))
+    return jnp.linalg.lstsq(jac, xdd - drift)[0]
 
 
 def keypoint_state(reference, q, qd, qdd=None):
@@ -187,3 +209,33 @@ def reference_systems():
         CartpoleReference(1.2, 0.4, 1.1, 0.55, 0.04, 0.03, gears=(4.0, 1.0), actuated=(0, 1)),
     )
     return cases
+
+
+def simulate_reference(reference, q0, qd0, u, dt, samples, *, substeps=20, force=None):
+    """Integrate a reference in its generalised coordinates (classic RK4, `substeps` steps per sample)
+    with the control `u` `(samples, l)` held from each sample to the next, and map the samples to
+    keypoints through the reference's own `x = F(q)`.
+
+    `force(q, qd)` adds a generalised force (see `euler_lagrange_acceleration`). One run in, one out;
+    `jax.vmap` over runs. Returns `(x, xd)`, each `(samples, k)`.
+    """
+    h = dt / substeps
+
+    def rate(state, control):
+        q, qd = state
+        return qd, euler_lagrange_acceleration(reference, q, qd, control, force)
+
+    def step(state, control):
+        def substep(state, _):
+            k1 = rate(state, control)
+            k2 = rate(jax.tree.map(lambda s, k: s + 0.5 * h * k, state, k1), control)
+            k3 = rate(jax.tree.map(lambda s, k: s + 0.5 * h * k, state, k2), control)
+            k4 = rate(jax.tree.map(lambda s, k: s + h * k, state, k3), control)
+            new = jax.tree.map(lambda s, a, b, c, d: s + h / 6 * (a + 2 * b + 2 * c + d), state, k1, k2, k3, k4)
+            return new, None
+
+        new, _ = jax.lax.scan(substep, state, None, length=substeps)
+        return new, state
+
+    _, (q, qd) = jax.lax.scan(step, (jnp.asarray(q0), jnp.asarray(qd0)), jnp.asarray(u)[:samples])
+    return jax.vmap(lambda a, b: keypoint_state(reference, a, b))(q, qd)
