@@ -1,4 +1,5 @@
-"""Evaluation of learned dynamics on held-out runs: rollouts, valid prediction time, relative error.
+"""Evaluation of dynamics on held-out runs: the held-control rollout, valid prediction time,
+relative errors.
 
 Metrics act on keypoint trajectories in state space (positions in metres), the counterpart of the
 image-space metrics of the KeyCLD paper (eq. 16): a model is rolled out from the first states of a
@@ -15,9 +16,77 @@ import numpy as np
 from jaxtyping import Array, ArrayLike, Float
 
 from ._control import ZeroOrderHold
-from ._integrate import RK4, AbstractStabilisation, Projection, simulate
-from ._learn import Sequences, central_difference
+from ._custom_types import ArrayInput
+from ._data import Sequences, central_difference
+from ._integrate import Trajectory, simulate
+from ._solver import RK4
+from ._stabilisation import AbstractStabilisation, Projection
 from ._system import AbstractDynamics, ConstrainedLagrangian
+
+
+def rollout(
+    model: AbstractDynamics,
+    x0: ArrayInput,
+    xd0: ArrayInput,
+    controls: ArrayInput,
+    dt: float,
+    *,
+    solver: dfx.AbstractSolver = RK4(),
+    stabilisation: AbstractStabilisation | None = Projection(),
+    project: bool = True,
+    dt0: float | None = None,
+    adjoint: dfx.AbstractAdjoint | None = None,
+    throw: bool = True,
+) -> Trajectory:
+    """One run of a model from a state, with sampled controls each held until the next sample.
+
+    How recorded runs are replayed (MuJoCo holds `ctrl` between samples; KeyCLD's data hold one
+    action per run): `cldyn.simulate` with `cldyn.ZeroOrderHold(controls, dt)`, saving the state at
+    the sample times `dt * arange(T)`. The losses (`Rollout`, `MultipleShooting`), `evaluate` and
+    `identify` all roll out through this function. One example in, one out: `jax.vmap` it over runs.
+
+    **Arguments:**
+
+    - `model`: any `AbstractDynamics`.
+    - `x0`, `xd0`: the initial positions and velocities, shape `(k,)`.
+    - `controls`: the control at every sample, shape `(T, l)` with `T >= 2`, applied from its
+      sample to the next; `T` sets the number of samples of the run.
+    - `dt`: the sampling interval `h`.
+    - `solver`: a diffrax solver; `cldyn.RK4()` by default.
+    - `stabilisation`: the constraint stabilisation (`Projection()` by default, or `None`).
+    - `project`: project the initial state onto the constraint manifold (constrained models only):
+      an estimated velocity rarely satisfies `DPhi(x0) xd0 = 0` exactly.
+    - `dt0`: the integration step; one step per sample (`dt`) by default. Fixed steps always: an
+      adaptive solver takes steps of `dt0` too.
+    - `adjoint`: how to differentiate through the solve (a diffrax adjoint); `simulate`'s default
+      by default.
+    - `throw`: raise when a solver fails (as `diffrax.diffeqsolve`); with `False` the failure is in
+      the trajectory's result.
+
+    **Returns:** a `Trajectory` with `ts = dt * arange(T)`, `x`, `xd` (shape `(T, k)`) and `u`.
+
+    !!! example
+
+        ```python
+        run = cldyn.rollout(model, data.x[0, 0], xd0, data.u[0], data.dt)
+        runs = jax.vmap(lambda a, b, c: cldyn.rollout(model, a, b, c, data.dt))(x0s, xd0s, data.u)
+        ```
+    """
+    dt = float(dt)
+    if not (np.isfinite(dt) and dt > 0):
+        raise ValueError(f"rollout: dt must be a positive sampling interval, got {dt}")
+    controls = jnp.asarray(controls) if not isinstance(controls, jax.Array | np.ndarray) else controls
+    if controls.ndim != 2 or controls.shape[0] < 2:
+        raise ValueError(
+            f"rollout: controls must have shape (T, l) with T >= 2 samples, got {controls.shape}"
+        )
+    ts = dt * np.arange(controls.shape[0])
+    options = {} if adjoint is None else {"adjoint": adjoint}
+    return simulate(
+        model, x0, xd0, ts, control=ZeroOrderHold(controls, dt), solver=solver,
+        dt0=dt if dt0 is None else dt0, stabilisation=stabilisation, project=project, throw=throw,
+        **options,
+    )
 
 
 def _pair(predicted, truth) -> tuple[Array, Array]:
@@ -86,6 +155,7 @@ def valid_prediction_time(
     samples = error.shape[-1]
     exceeded = error > threshold
     first = jnp.where(jnp.any(exceeded, axis=-1), jnp.argmax(exceeded, axis=-1), samples)
+    first = first.astype(float)  # the default floating dtype, as integer division gives
     return first * dt if dt is not None else first / samples
 
 
@@ -187,15 +257,12 @@ class Evaluation:
 
 
 @eqx.filter_jit
-def _rollouts(model, x0, xd0, controls, ts, *, dt, solver, dt0, stabilisation):
-    constrained = isinstance(model, ConstrainedLagrangian) and model.num_constraints > 0
-
+def _evaluation_runs(model, x0, xd0, controls, *, dt, solver, dt0, stabilisation):
     def run(a, b, c):
-        traj = simulate(
-            model, a, b, ts, control=ZeroOrderHold(c, dt), solver=solver, dt0=dt0,
-            stabilisation=stabilisation, project=constrained,
+        trajectory = rollout(
+            model, a, b, c, dt, solver=solver, dt0=dt0, stabilisation=stabilisation, project=True
         )
-        return traj.x, traj.xd
+        return trajectory.x, trajectory.xd
 
     return jax.vmap(run)(x0, xd0, controls)
 
@@ -258,10 +325,8 @@ def evaluate(
     controls = data.u[:, 1 : 2 + horizon]
     ts = dt * np.arange(horizon + 1)
     solver = RK4() if solver is None else solver
-    # always a fixed step: simulate treats every Runge-Kutta solver as adaptive without one
-    dt0 = dt if dt0 is None else dt0
-    xs, xds = _rollouts(
-        model, x0, xd0, controls, ts, dt=dt, solver=solver, dt0=dt0, stabilisation=stabilisation
+    xs, xds = _evaluation_runs(
+        model, x0, xd0, controls, dt=dt, solver=solver, dt0=dt0, stabilisation=stabilisation
     )
     truth = data.x[:, 1 : 2 + horizon]
     error = keypoint_error(xs, truth, dim=dim)

@@ -66,7 +66,7 @@ def pendulum_runs():
 
     def one(q0, u):
         x0, xd0 = joints.to_keypoints(q0, jnp.zeros(1))
-        return cldyn.simulate(system, x0, xd0, h * jnp.arange(30), control=u, solver=cldyn.RK4(), dt0=h / 8).x
+        return cldyn.simulate(system, x0, xd0, h * jnp.arange(30.0), control=u, solver=cldyn.RK4(), dt0=h / 8).x
 
     q0s = jnp.array([[0.5], [2.0], [-1.0]])
     us = jnp.array([[0.0], [0.3], [0.0]])
