@@ -156,20 +156,19 @@ def _mujoco_states(mjcf, keypoints, *, seed=0, runs=6):
     """Random states (fast motion), random controls, and MuJoCo's keypoint kinematics there."""
     rng = np.random.default_rng(seed)
     start = record(mjcf, runs=runs, duration=0.0, keypoints=keypoints, seed=seed)
-    qvel = rng.normal(size=start.qvel[:, 0].shape) * 2.0
+    qvel = rng.normal(size=start.extras["qvel"][:, 0].shape) * 2.0
     data = record(
         mjcf,
         duration=0.02,
         dt=0.01,
         keypoints=keypoints,
         seed=seed,
-        initial=(start.qpos[:, 0], qvel),
+        initial=(start.extras["qpos"][:, 0], qvel),
         control=rng.uniform(-1, 1, (runs, start.u.shape[-1])),
     )
-    flat = {
-        name: jnp.asarray(getattr(data, name).reshape(-1, getattr(data, name).shape[-1]))
-        for name in ("x_clean", "xd", "xdd", "u", "qpos", "qvel")
-    }
+    arrays = {"xd": data.xd, "xdd": data.xdd, "u": data.u}
+    arrays.update({name: data.extras[name] for name in ("x_clean", "qpos", "qvel")})
+    flat = {name: jnp.asarray(np.reshape(a, (-1, a.shape[-1]))) for name, a in arrays.items()}
     return data, flat
 
 
@@ -178,8 +177,8 @@ def test_acceleration_matches_mujoco(case):
     mjcf, keypoints, include = CASES[case]
     bridge = from_mjcf(mjcf, keypoints=keypoints, include=include)
     data, s = _mujoco_states(mjcf, keypoints)
-    assert bridge.keypoint_names == data.keypoint_names
-    assert not np.any(data.qfrc_constraint)  # no limit or contact acted
+    assert bridge.keypoint_names == tuple(data.info["keypoint_names"])
+    assert not np.any(data.extras["qfrc_constraint"])  # no limit or contact acted
 
     xdd = jax.jit(jax.vmap(bridge.system.acceleration))(s["x_clean"], s["xd"], s["u"])
     error = float(jnp.max(jnp.abs(xdd - s["xdd"])) / jnp.max(jnp.abs(s["xdd"])))

@@ -1,19 +1,28 @@
-"""Keypoint feedback control of MuJoCo scenes: `closed_loop`, `swing_up` and `cldyn control`."""
+"""Keypoint feedback control of MuJoCo scenes: `closed_loop` and the energy-shaping `swing_up`."""
 
-import argparse
-import json
 import os
-import pathlib
-import time
 from collections.abc import Callable, Sequence
 
-import jax
+import equinox as eqx
 import jax.numpy as jnp
 import numpy as np
 
 from .._control import EnergyShaping
-from ._bridge import from_mjcf
-from ._record import Recording, record
+from .._data import Sequences
+from .._misc import atomic_save, check_positive, optional_import
+from .._progress import AbstractProgressMeter, NoProgressMeter
+from ._bridge import MujocoModel, from_mjcf
+from ._record import record
+from ._scenes import load_model
+from ._tree import _HINGE
+
+
+@eqx.filter_jit
+def _policy(joints, controller, shift, t, qpos, qvel):
+    # One compiled program per scene structure and controller type: the bridge's joint maps and the
+    # controller are arguments (their arrays traced), not constants of a closure.
+    x, xd = joints.to_keypoints(qpos, qvel)
+    return controller(t, x - jnp.tile(shift, x.shape[0] // shift.shape[0]), xd)
 
 
 def closed_loop(
@@ -28,8 +37,8 @@ def closed_loop(
     origin: Sequence[float] | None = None,
     keypoints: Sequence[str] | None = None,
     seed: int = 0,
-    progress: bool = False,
-) -> Recording:
+    progress_meter: AbstractProgressMeter = NoProgressMeter(),
+) -> Sequences:
     """Run a keypoint feedback policy on a MuJoCo scene.
 
     At every sample MuJoCo's state is read as keypoints (positions and velocities of the scene's
@@ -46,21 +55,16 @@ def closed_loop(
     - `origin`: a point `(2,)` subtracted from every keypoint before the policy sees it (models
       learned on `keycld_dataset`, whose keypoints are relative to the scene's pivot).
     - `keypoints`: site names, if not the scene's default keypoints.
-    - `seed`, `progress`: as in `record`.
+    - `seed`, `progress_meter`: as in `record`.
 
-    **Returns:** the `Recording` of the closed-loop runs.
+    **Returns:** the `cldyn.Sequences` of the closed-loop runs, as `record` returns them.
     """
     bridge = from_mjcf(mjcf, keypoints=keypoints)
     shift = jnp.zeros(2) if origin is None else jnp.asarray(origin, dtype=float)
-    count = len(bridge.keypoint_names)
-
-    @jax.jit
-    def policy(t, qpos, qvel):
-        x, xd = bridge.joints.to_keypoints(qpos, qvel)
-        return controller(t, x - jnp.tile(shift, count), xd)
 
     def control(t, qpos, qvel):
-        return np.asarray(policy(jnp.asarray(t, dtype=float), jnp.asarray(qpos), jnp.asarray(qvel)))
+        t, qpos, qvel = jnp.asarray(t, dtype=float), jnp.asarray(qpos), jnp.asarray(qvel)
+        return np.asarray(_policy(bridge.joints, controller, shift, t, qpos, qvel))
 
     return record(
         mjcf,
@@ -73,14 +77,15 @@ def closed_loop(
         control=control,
         keypoints=keypoints,
         seed=seed,
-        progress=progress,
+        progress_meter=progress_meter,
     )
 
 
-def _postures(bridge) -> tuple[np.ndarray, np.ndarray]:
+def _postures(bridge: MujocoModel, hinge: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """`(hanging, upright)` joint positions: every hinge at the angle that puts the keypoints lowest or
-    highest (slides at zero), found from the geometry rather than from a joint convention."""
-    hinges = [j for j, c in enumerate(bridge.joint_coordinates) if "Slider" not in type(c).__name__]
+    highest (slides at zero), found from the geometry rather than from a joint convention. `hinge`
+    marks the hinges among the joints."""
+    hinges = [int(j) for j in np.flatnonzero(hinge)]
     best = {}
     for angles in (
         np.array(np.meshgrid(*([[0.0, np.pi]] * len(hinges)), indexing="ij")).reshape(len(hinges), -1).T
@@ -110,7 +115,7 @@ def swing_up(
     tolerance: float = 0.05,
     perturbation: float = 0.2,
     seed: int = 0,
-    progress: bool = False,
+    progress_meter: AbstractProgressMeter = NoProgressMeter(),
 ) -> dict:
     """Energy-shaping swing-up (eq. 32) of a fully actuated MuJoCo scene, from hanging to upright.
 
@@ -126,13 +131,24 @@ def swing_up(
     - `system`: the model the controller uses; `from_mjcf(mjcf).system` by default.
     - `origin`: subtracted from the keypoints the model sees (see `closed_loop`).
     - `runs`, `duration`, `tolerance`, `perturbation`, `seed`: the protocol.
-    - `progress`: show MuJoCo's progress.
+    - `progress_meter`: reports MuJoCo's runs (e.g. `cldyn.TqdmProgressMeter()`).
 
     **Returns:** a dict with the success rate, per-run final errors and times to reach the tolerance,
     the error curves (`ts`, `errors` of shape `(runs, T)`) and the recording.
     """
+    check_positive("runs", runs, integer=True)
+    for name, value in (("duration", duration), ("tolerance", tolerance), ("kp", kp)):
+        check_positive(name, value)
+    check_positive("kd", kd, allow_zero=True)
+    check_positive("perturbation", perturbation, allow_zero=True)
     bridge = from_mjcf(mjcf)
-    hanging, upright = _postures(bridge)
+    if bridge.system.num_inputs < len(bridge.joint_names):
+        raise ValueError(
+            f"swing_up needs a fully actuated scene: {mjcf} has {len(bridge.joint_names)} joints "
+            f"{list(bridge.joint_names)} but {bridge.system.num_inputs} actuators "
+            f"{list(bridge.actuator_names)} (the keycld/ scenes are fully actuated)"
+        )
+    hanging, upright = _postures(bridge, load_model(mjcf)[0].jnt_type == _HINGE)
     shift = np.zeros(2) if origin is None else np.asarray(origin, dtype=float)
     target_world = np.asarray(bridge.joints.keypoints(jnp.asarray(upright)))
     model = bridge.system if system is None else system
@@ -149,13 +165,14 @@ def swing_up(
         initial=(qpos, qvel),
         origin=origin,
         seed=seed,
-        progress=progress,
+        progress_meter=progress_meter,
     )
-    x = data.x_clean.reshape(runs, data.x.shape[1], -1, 2)
+    x = np.asarray(data.extras["x_clean"]).reshape(runs, data.num_samples, -1, 2)
     errors = np.linalg.norm(x - target_world.reshape(1, 1, -1, 2), axis=-1).max(axis=-1)
     window = max(1, int(round(0.5 / data.dt)))
     success = errors[:, -window:].max(axis=1) < tolerance
-    reached = [float(data.time[np.argmax(e < tolerance)]) if (e < tolerance).any() else None for e in errors]
+    ts = np.asarray(data.ts)
+    reached = [float(ts[np.argmax(e < tolerance)]) if (e < tolerance).any() else None for e in errors]
     return {
         "scene": str(mjcf),
         "kp": kp,
@@ -169,20 +186,20 @@ def swing_up(
         "final_error": errors[:, -1].tolist(),
         "time_to_tolerance": reached,
         "max_abs_control": float(np.abs(data.u).max()),
-        "ts": data.time,
+        "ts": ts,
         "errors": errors,
         "recording": data,
     }
 
 
 def plot_swing_up(results: Sequence[dict], path: "str | os.PathLike") -> None:
-    """Keypoint error to the upright target over time, one panel per result of `swing_up`."""
-    import matplotlib
+    """Keypoint error to the upright target over time, one panel per result of `swing_up`.
 
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    fig, axes = plt.subplots(1, len(results), figsize=(4.2 * len(results), 3.4), squeeze=False)
+    Needs matplotlib (the `[vision]` extra); the file is written atomically.
+    """
+    figure_module = optional_import("matplotlib.figure", purpose="plot_swing_up")
+    figure = figure_module.Figure(figsize=(4.2 * len(results), 3.4))
+    axes = figure.subplots(1, len(results), squeeze=False)
     for ax, result in zip(axes[0], results):
         for e in result["errors"]:
             ax.plot(result["ts"], e, lw=0.8, alpha=0.6)
@@ -194,68 +211,5 @@ def plot_swing_up(results: Sequence[dict], path: "str | os.PathLike") -> None:
         )
         ax.set_xlabel("time (s)")
         ax.set_ylabel("max keypoint error to upright (m)")
-    fig.tight_layout()
-    fig.savefig(path, dpi=120)
-    plt.close(fig)
-
-
-def _control_command(args: argparse.Namespace) -> int:
-    jax.config.update("jax_enable_x64", True)
-    system, origin = None, None
-    if args.model is not None:
-        from .._learn_cli import load_fitted
-        from ._datasets import keycld_origin
-
-        system, spec = load_fitted(args.model)
-        system = jax.tree_util.tree_map(lambda a: a.astype(float) if hasattr(a, "astype") else a, system)
-        origin = keycld_origin(args.mjcf.removeprefix("keycld/")) if args.mjcf.startswith("keycld/") else None
-    started = time.perf_counter()
-    result = swing_up(
-        args.mjcf,
-        kp=args.kp,
-        kd=args.kd,
-        damping=args.damping,
-        system=system,
-        origin=origin,
-        runs=args.runs,
-        duration=args.duration,
-        seed=args.seed,
-        progress=True,
-    )
-    out = pathlib.Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
-    summary = {k: v for k, v in result.items() if k not in ("ts", "errors", "recording")}
-    summary["model"] = str(args.model) if args.model else "from_mjcf (analytic)"
-    summary["seconds"] = time.perf_counter() - started
-    (out / "control.json").write_text(json.dumps(summary, indent=2))
-    plot_swing_up([result], out / "control.png")
-    print(
-        f"{args.mjcf}: {100 * result['success_rate']:.0f}% of {args.runs} runs within "
-        f"{result['tolerance']} m of upright after {args.duration:g} s; "
-        f"wrote {out / 'control.json'} and {out / 'control.png'}"
-    )
-    return 0
-
-
-def register(subparsers) -> None:
-    """Add `cldyn control`."""
-    parser = subparsers.add_parser(
-        "control",
-        help="energy-shaping swing-up of a MuJoCo scene with an analytic or learned model",
-        description="Swing a fully actuated scene from hanging to upright with cldyn.EnergyShaping (eq. 32) "
-        "as a keypoint feedback policy on MuJoCo, over random starts; report the success rate.",
-    )
-    parser.add_argument(
-        "--mjcf", required=True, help="scene: file, suite name or keycld/<pendulum|cartpole|acrobot>"
-    )
-    parser.add_argument("--out", required=True, help="output directory for control.json and control.png")
-    parser.add_argument(
-        "--model", default=None, help="a `cldyn fit` output directory (default: the analytic model)"
-    )
-    parser.add_argument("--kp", type=float, default=5.0, help="stiffness of the shaped potential (default 5)")
-    parser.add_argument("--kd", type=float, default=2.0, help="damping gain (default 2)")
-    parser.add_argument("--damping", choices=("keypoint", "output"), default="keypoint", help="damping form")
-    parser.add_argument("--runs", type=int, default=20, help="random starts (default 20)")
-    parser.add_argument("--duration", type=float, default=10.0, help="seconds per run (default 10)")
-    parser.add_argument("--seed", type=int, default=0, help="seed of the starts")
-    parser.set_defaults(run=_control_command)
+    figure.tight_layout()
+    atomic_save(path, lambda temporary: figure.savefig(temporary, dpi=120))

@@ -6,9 +6,16 @@ import pathlib
 import time
 from collections.abc import Sequence
 
+import diffrax
+import jax
+import jax.numpy as jnp
 import mujoco
 import numpy as np
 
+from .._integrate import simulate
+from .._misc import atomic_save, atomic_write, check_positive, optional_import
+from .._progress import AbstractProgressMeter, NoProgressMeter
+from ._bridge import from_mjcf
 from ._record import _control_range, prepare, random_initial_states, simulate_mujoco
 from ._scenes import load_model
 
@@ -17,13 +24,10 @@ REPORT_NAME = "validation.json"
 
 
 def _plot(path: pathlib.Path, ts: np.ndarray, errors: np.ndarray, title: str) -> None:
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
+    # matplotlib's object interface: no pyplot, so no global backend or figure registry is touched.
+    figure = optional_import("matplotlib.figure", purpose="validate's plot").Figure(figsize=(7, 4))
+    ax = figure.subplots()
     floor = np.finfo(float).eps
-    fig, ax = plt.subplots(figsize=(7, 4))
     for run in errors:
         ax.semilogy(ts, np.maximum(run, floor), color="tab:blue", alpha=0.35, linewidth=0.8)
     ax.semilogy(
@@ -34,9 +38,8 @@ def _plot(path: pathlib.Path, ts: np.ndarray, errors: np.ndarray, title: str) ->
     ax.set_title(title, fontsize=9)
     ax.grid(True, which="both", alpha=0.3)
     ax.legend(loc="lower right")
-    fig.tight_layout()
-    fig.savefig(path, dpi=120)
-    plt.close(fig)
+    figure.tight_layout()
+    atomic_save(path, lambda temporary: figure.savefig(temporary, dpi=120))
 
 
 def validate(
@@ -54,7 +57,7 @@ def validate(
     atol: float = 1e-12,
     control_range=None,
     joint_limits: bool = False,
-    progress: bool = False,
+    progress_meter: AbstractProgressMeter = NoProgressMeter(),
 ) -> dict:
     """Compare `from_mjcf`'s cldyn model with MuJoCo on random motions.
 
@@ -62,7 +65,8 @@ def validate(
     `rtol`, `atol`, float64, no stabilisation) start from the same random initial states (KeyCLD's:
     hinge angles U(-pi, pi), slide positions U(-1, 1), velocities U(-0.1, 0.1)) with the same random
     constant controls (uniform in the control range, nonzero in every run); the keypoint positions
-    are compared every `dt`. Enables float64 in JAX.
+    are compared every `dt`. Needs JAX's 64-bit mode (the `cldyn validate` command turns it on): the
+    agreement it measures lies far below float32's resolution.
 
     **Arguments:**
 
@@ -77,7 +81,7 @@ def validate(
     - `control_range`: as in `record`.
     - `joint_limits`: keep MuJoCo's joint limits; off by default, since `from_mjcf` does not model
       them.
-    - `progress`: show progress bars.
+    - `progress_meter`: reports MuJoCo's runs (e.g. `cldyn.TqdmProgressMeter()`).
 
     **Returns:** the report (also written to `validation.json`): `max_position_error` (m, over all
     runs, keypoints and times), `max_velocity_error` (m/s), `position_error_per_run`,
@@ -86,16 +90,14 @@ def validate(
     `mujoco_constraints_active` (whether MuJoCo applied any constraint force: a limit or a contact
     the model lacks), `duration` (s) and the settings.
     """
-    import jax
-
-    jax.config.update("jax_enable_x64", True)
-    import diffrax
-    import jax.numpy as jnp
-
-    import cldyn
-
-    from ._bridge import from_mjcf
-
+    if jax.dtypes.canonicalize_dtype(jnp.float64) != jnp.float64:
+        raise ValueError(
+            "validate compares cldyn with MuJoCo far below float32's resolution: turn on JAX's 64-bit "
+            "mode before calling it (the `cldyn validate` command does)"
+        )
+    check_positive("runs", runs, integer=True)
+    for name, value in (("duration", duration), ("dt", dt), ("physics_dt", physics_dt)):
+        check_positive(name, value)
     started = time.perf_counter()
     bridge = from_mjcf(mjcf, keypoints=keypoints, include=include)
     system = bridge.system
@@ -123,9 +125,9 @@ def validate(
         lambda r, s, t, q, v: controls[r],
         samples,
         substeps,
-        progress=progress,
+        progress_meter=progress_meter,
     )
-    ts = jnp.arange(samples) * dt
+    ts = jnp.asarray(np.arange(samples) * dt)
     x0 = jnp.asarray(reference["x_clean"][:, 0])
     xd0 = jnp.asarray(reference["xd"][:, 0])
     mapped = jax.vmap(bridge.joints.to_keypoints)(jnp.asarray(qpos0), jnp.asarray(qvel0))
@@ -134,7 +136,7 @@ def validate(
     @jax.jit
     @jax.vmap
     def solve(x0, xd0, u):
-        trajectory = cldyn.simulate(
+        trajectory = simulate(
             system,
             x0,
             xd0,
@@ -182,8 +184,7 @@ def validate(
     }
     if out is not None:
         directory = pathlib.Path(out)
-        directory.mkdir(parents=True, exist_ok=True)
-        (directory / REPORT_NAME).write_text(json.dumps(report, indent=2) + "\n")
+        atomic_write(directory / REPORT_NAME, json.dumps(report, indent=2) + "\n")
         include_text = f", include={list(bridge.include)}" if bridge.include else ""
         _plot(
             directory / PLOT_NAME,

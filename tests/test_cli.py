@@ -1,0 +1,236 @@
+"""The `cldyn` command line, in-process through `main(argv)`: help, bad options and expected failures give
+one `cldyn <command>: error: ...` line and status 2 (never a traceback), and tiny runs of each command
+do their job."""
+
+import json
+
+import jax
+import numpy as np
+import pytest
+
+import cldyn
+from cldyn._cli import _record, main
+
+COMMANDS = ("demo", "record", "validate", "identify", "control", "fit")
+
+# command -> (arguments with one invalid number, the option the error must name)
+BAD_NUMBERS = {
+    "demo": (["--noise", "nan"], "--noise"),
+    "record": (["--mjcf", "keycld/pendulum", "--out", "{tmp}/x.npz", "--runs", "0"], "--runs"),
+    "validate": (["--mjcf", "keycld/pendulum", "--out", "{tmp}/v", "--duration", "inf"], "--duration"),
+    "identify": (
+        ["--data", "d.npz", "--model", "acrobot", "--out", "{tmp}/r", "--holdout", "1"],
+        "--holdout",
+    ),
+    "control": (["--mjcf", "keycld/pendulum", "--out", "{tmp}/c", "--kp", "-1"], "--kp"),
+    "fit": (["--scene", "pendulum", "--out", "{tmp}/f", "--lr", "nan"], "--lr"),
+}
+
+PENDULUM_TOL = 1e-12  # the pendulum's tip stays on its circle (m): a rigid pole in MuJoCo
+VALIDATE_TOL = 1e-6  # from_mjcf against MuJoCo over 0.1 s (m); the full check is in test_mujoco_bridge
+
+
+def _run(capsys, argv):
+    status = main(argv)
+    out, err = capsys.readouterr()
+    assert "Traceback" not in err
+    return status, out, err
+
+
+def test_help_lists_every_command_and_version(capsys):
+    status, out, _ = _run(capsys, [])
+    assert status == 0 and all(command in out for command in COMMANDS)
+    status, out, _ = _run(capsys, ["--version"])
+    assert status == 0 and out.strip() == cldyn.__version__
+
+
+@pytest.mark.parametrize("command", COMMANDS)
+def test_help_shows_the_defaults(command, capsys):
+    status, out, _ = _run(capsys, [command, "--help"])
+    assert status == 0
+    assert out.startswith(f"usage: cldyn {command}")
+    assert "(default: " in out and "%%" not in out
+
+
+@pytest.mark.parametrize("command", COMMANDS)
+def test_a_bad_number_is_one_error_line_before_any_work(command, tmp_path, capsys):
+    arguments, option = BAD_NUMBERS[command]
+    status, _, err = _run(capsys, [command] + [a.format(tmp=tmp_path) for a in arguments])
+    assert status == 2
+    assert f"cldyn {command}: error: argument {option}: must " in err
+    assert not any(tmp_path.iterdir())  # nothing created
+
+
+def test_unknown_command_and_option(capsys):
+    status, _, err = _run(capsys, ["nonsense"])
+    assert status == 2 and "cldyn: error: argument <command>: invalid choice: 'nonsense'" in err
+    status, _, err = _run(capsys, ["record", "--mjcf", "x", "--out", "y", "--bogus"])
+    assert status == 2 and "cldyn record: error: unrecognized arguments: --bogus" in err
+
+
+def test_an_unusable_output_fails_before_any_work(tmp_path, capsys):
+    blocker = tmp_path / "file"
+    blocker.write_text("")
+    cases = {
+        "record": ["--mjcf", "keycld/pendulum", "--out", str(blocker / "x.npz")],
+        "validate": ["--mjcf", "keycld/pendulum", "--out", str(blocker / "v")],
+        "control": ["--mjcf", "keycld/pendulum", "--out", str(blocker)],
+        "identify": ["--data", str(blocker), "--model", "acrobot", "--out", str(blocker / "r")],
+        "fit": ["--scene", "pendulum", "--out", str(blocker)],
+        "demo": ["--out", str(blocker)],
+    }
+    for command, arguments in cases.items():
+        status, _, err = _run(capsys, [command] + arguments)
+        assert status == 2, command
+        assert f"cldyn {command}: error: --out {blocker}" in err, err
+
+
+def test_a_missing_input_and_an_unknown_scene_are_one_error_line(tmp_path, capsys):
+    arguments = ["--data", str(tmp_path / "missing.npz"), "--model", "acrobot", "--out", str(tmp_path / "r")]
+    status, _, err = _run(capsys, ["identify"] + arguments)
+    assert status == 2 and "cldyn identify: error: --data" in err and "no such file" in err
+    # without the [mujoco] extra the error names the extra instead: one line either way
+    status, _, err = _run(capsys, ["validate", "--mjcf", "pendulumm", "--out", str(tmp_path / "v")])
+    assert status == 2 and err.startswith("cldyn validate: error: ")
+    assert "pendulumm" in err or "cldyn[mujoco]" in err
+
+
+def test_ctrl_c_exits_130_without_a_traceback(tmp_path, capsys, monkeypatch):
+    def interrupted(args):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(_record, "run", interrupted)
+    status, _, err = _run(capsys, ["record", "--mjcf", "keycld/pendulum", "--out", str(tmp_path / "x.npz")])
+    assert status == 130 and "cldyn record: interrupted" in err
+
+
+def _pendulum_runs(runs: int, samples: int, dt: float) -> cldyn.Sequences:
+    """Keypoint runs of a unit pendulum swinging about the origin (small-angle motion), one input."""
+    t = dt * np.arange(samples)
+    amplitude = np.linspace(0.2, 0.6, runs)[:, None]
+    angle = amplitude * np.cos(np.sqrt(9.81) * t)[None, :]
+    x = np.stack([np.sin(angle), -np.cos(angle)], axis=-1)
+    return cldyn.Sequences(x, np.zeros((runs, samples, 1)), dt)
+
+
+@pytest.fixture
+def standard_promotion():
+    # optax's cosine schedule (the command's learning-rate schedule) multiplies its int32 step count
+    # by Python floats, which the suite's strict dtype promotion refuses.
+    with jax.numpy_dtype_promotion("standard"):
+        yield
+
+
+def test_fit_resume_and_load(tmp_path, capsys, standard_promotion):
+    data = _pendulum_runs(4, 10, 0.02).save(tmp_path / "runs.npz")
+    out = tmp_path / "fit"
+    common = ["fit", "--data", str(data), "--constraint", "pendulum", "--out", str(out), "--no-progress"]
+    common += ["--validation-runs", "1", "--batch-size", "2", "--width", "8", "--checkpoint-every", "2"]
+    status, stdout, err = _run(capsys, common + ["--steps", "2"])
+    assert status == 0, err
+    assert json.loads(stdout.splitlines()[-1])["steps"] == 2
+    status, stdout, _ = _run(capsys, common + ["--steps", "4", "--resume"])
+    summary = json.loads(stdout.splitlines()[-1])
+    assert status == 0 and summary["steps"] == 4 and summary["validation"] is not None
+    model, spec = cldyn.load_fit(out)
+    assert isinstance(model, cldyn.ConstrainedLagrangian)
+    assert spec["model"]["constraint"] == "pendulum" and spec["model"]["width"] == 8
+    # a KeyCLD model without constraints is an expected failure, not a traceback
+    bad = [
+        "fit",
+        "--data",
+        str(data),
+        "--out",
+        str(tmp_path / "bad"),
+        "--steps",
+        "1",
+        "--validation-runs",
+        "1",
+    ]
+    status, _, err = _run(capsys, bad)
+    assert status == 2 and "cldyn fit: error:" in err and "needs a constraint" in err
+
+
+@pytest.mark.mujoco
+def test_record_and_validate(tmp_path, capsys):
+    pytest.importorskip("mujoco")
+    from cldyn.mujoco import keycld_origin
+
+    path = tmp_path / "pendulum.npz"
+    argv = ["record", "--mjcf", "keycld/pendulum", "--out", str(path), "--runs", "2", "--duration", "0.2"]
+    status, out, _ = _run(capsys, argv + ["--dt", "0.02", "--seed", "3"])
+    assert status == 0 and out.startswith("recorded 2 runs x 11 samples (dt 0.02 s")
+    data = cldyn.Sequences.load(path)
+    assert data.x.shape == (2, 11, 2) and data.info["mjcf"] == "keycld/pendulum" and data.info["seed"] == 3
+    # the single keypoint is the pole's tip: it stays on a circle about the pivot
+    pivot = np.asarray(keycld_origin("pendulum"))
+    radius = np.linalg.norm(np.asarray(data.x) - pivot, axis=-1)
+    assert np.ptp(radius) < PENDULUM_TOL
+
+    out_dir = tmp_path / "validation"
+    argv = [
+        "validate",
+        "--mjcf",
+        "keycld/pendulum",
+        "--out",
+        str(out_dir),
+        "--runs",
+        "1",
+        "--duration",
+        "0.1",
+    ]
+    status, out, err = _run(capsys, argv + ["--physics-dt", "0.001", "--tolerance", str(VALIDATE_TOL)])
+    assert status == 0, err
+    summary = json.loads(out.splitlines()[0])
+    assert summary["runs"] == 1 and summary["max_position_error"] < VALIDATE_TOL
+    assert (out_dir / "validation.json").is_file() and (out_dir / "keypoint_error.png").is_file()
+
+
+@pytest.mark.mujoco
+def test_control(tmp_path, capsys):
+    pytest.importorskip("mujoco")
+    argv = [
+        "control",
+        "--mjcf",
+        "keycld/pendulum",
+        "--out",
+        str(tmp_path),
+        "--runs",
+        "2",
+        "--duration",
+        "0.6",
+    ]
+    status, out, _ = _run(capsys, argv)
+    assert status == 0 and out.startswith("keycld/pendulum: ")
+    report = json.loads((tmp_path / "control.json").read_text())
+    assert report["runs"] == 2 and len(report["final_error"]) == 2
+    assert (tmp_path / "control.png").is_file()
+    # the controller needs every joint actuated: the stock acrobot is refused by name
+    status, _, err = _run(capsys, ["control", "--mjcf", "acrobot", "--out", str(tmp_path / "a")])
+    assert status == 2 and "cldyn control: error: swing_up needs a fully actuated scene" in err
+
+
+@pytest.mark.mujoco
+@pytest.mark.slow
+def test_identify(tmp_path, capsys):
+    pytest.importorskip("mujoco")
+    path = tmp_path / "acrobot.npz"
+    argv = [
+        "record",
+        "--mjcf",
+        "acrobot",
+        "--out",
+        str(path),
+        "--runs",
+        "8",
+        "--duration",
+        "2",
+        "--dt",
+        "0.01",
+    ]
+    assert _run(capsys, argv + ["--physics-dt", "0.002", "--integrator", "rk4", "--noise", "0.001"])[0] == 0
+    argv = ["identify", "--data", str(path), "--model", "acrobot", "--out", str(tmp_path / "report")]
+    status, out, _ = _run(capsys, argv + ["--bootstrap", "10", "--max-rounds", "1"])
+    assert status == 0 and "identify:" in out
+    report = json.loads((tmp_path / "report" / "report.json").read_text())
+    assert "joint_damping" in json.dumps(report)  # the stock acrobot's undeclared damping
