@@ -245,7 +245,8 @@ class ConstantMass(AbstractMass):
         return lower @ (lower.T @ v)
 
     def inverse(self) -> Matrix:
-        return jax.scipy.linalg.cho_solve((self.cholesky(), True), jnp.eye(self.size))
+        eye = jnp.eye(self.size, dtype=self.log_diagonal.dtype)
+        return jax.scipy.linalg.cho_solve((self.cholesky(), True), eye)
 
     def solve(self, b):
         # M is tiny and shared by every state in a batch: one dense inverse, then a matmul that

@@ -233,7 +233,7 @@ class ConstrainedLagrangian(AbstractDynamics):
         root = jnp.sqrt(jnp.maximum(self.armature.armature, 0.0))
         scaled = grads * root[None, :]
         minv_scaled = self.mass.solve(scaled)
-        capacitance = jnp.eye(scaled.shape[1]) + scaled.T @ minv_scaled
+        capacitance = jnp.eye(scaled.shape[1], dtype=scaled.dtype) + scaled.T @ minv_scaled
         return base - minv_scaled @ small_solve(capacitance, scaled.T @ base)
 
     def _terms(self, x, xd, u):

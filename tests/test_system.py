@@ -405,3 +405,43 @@ def test_unconstrained_system_is_newton():
     xdd = system.acceleration(jnp.zeros(4), jnp.ones(4))
     assert np.allclose(xdd, [0, -9.81, 0, -9.81], rtol=1e-14)
     assert system.multipliers(jnp.zeros(4), jnp.ones(4)).shape == (0,)
+
+
+def test_a_float32_model_stays_in_float32():
+    """Every component computes in its own dtype: no float64 constant leaks into float32 training
+    (the tests run with strict dtype promotion, so a leak raises)."""
+    base, joints, _ = CASES["acrobot"]
+    coords = [cldyn.HingeAngle(child=(None, 0)), cldyn.HingeAngle(child=(0, 1), parent=(None, 0))]
+    drag = cldyn.KeypointDrag(jnp.full(2, 0.1), jnp.full(2, 0.01))
+    springs = cldyn.JointSpring(coords[1], stiffness=0.5) + cldyn.Spring(0, 1, stiffness=1.0)
+    models = [
+        cldyn.ConstrainedLagrangian(
+            mass=base.mass,
+            potential=base.potential + springs,
+            constraint=base.constraint,
+            input_matrix=base.input_matrix,
+            dissipation=cldyn.JointDamping(coords, 0.1) + cldyn.JointCoulomb(coords, 0.05) + drag,
+            armature=cldyn.JointArmature(coords, 0.05),
+        ),
+        cldyn.ConstrainedLagrangian(
+            mass=cldyn.CoupledMasses(jnp.ones(2)),
+            potential=cldyn.MLPPotential(4, key=jax.random.key(0)),
+            constraint=base.constraint,
+            input_matrix=cldyn.MLPInput(4, 2, key=jax.random.key(1)),
+        ),
+    ]
+    single = lambda a: a.astype(jnp.float32) if eqx.is_inexact_array(a) else a
+    x, xd = jax.tree.map(single, joints.to_keypoints(jnp.array([0.3, 0.4]), jnp.array([0.1, -0.2])))
+    u = jnp.ones(2, jnp.float32)
+    for model in models:
+        model = jax.tree.map(single, model)
+        outputs = (
+            model.acceleration(x, xd, u),
+            model.multipliers(x, xd, u),
+            model.constraint_force(x, xd, u),
+            model.inverse_dynamics(x, xd, xd, u),
+            model.energy(x, xd),
+            model.power(x, xd, u),
+            model.mass.inverse(),
+        )
+        assert [o.dtype for o in outputs] == [jnp.float32] * len(outputs)
