@@ -75,7 +75,7 @@ def rollout(
     dt = float(dt)
     if not (np.isfinite(dt) and dt > 0):
         raise ValueError(f"rollout: dt must be a positive sampling interval, got {dt}")
-    controls = jnp.asarray(controls) if not isinstance(controls, jax.Array | np.ndarray) else controls
+    controls = jnp.asarray(controls)
     if controls.ndim != 2 or controls.shape[0] < 2:
         raise ValueError(
             f"rollout: controls must have shape (T, l) with T >= 2 samples, got {controls.shape}"

@@ -10,10 +10,11 @@ import pytest
 
 import cldyn
 from cldyn._cli import main
-from cldyn._learn_cli import load_fitted
 
 mujoco = pytest.importorskip("mujoco")
 import cldyn.mujoco as cm  # noqa: E402
+
+pytestmark = pytest.mark.mujoco
 
 CONSTRAINT_TOL = 1e-6
 
@@ -43,11 +44,20 @@ def test_dataset_seed_noise_and_cache(tmp_path):
     first = cm.keycld_recording("pendulum", runs=6, frames=5, noise=0.01, seed=1, cache=tmp_path)
     again = cm.keycld_recording("pendulum", runs=6, frames=5, noise=0.01, seed=1, cache=tmp_path)
     np.testing.assert_array_equal(first.x, again.x)
-    assert first.seed == 1 and first.noise == 0.01
-    noise = first.x - first.x_clean
+    for name, value in first.extras.items():
+        np.testing.assert_array_equal(again.extras[name], value)
+    assert first.info == again.info
+    assert first.info["seed"] == 1 and first.info["noise"] == 0.01 and first.info["mjcf"] == "keycld/pendulum"
+    noise = first.x - first.extras["x_clean"]
     assert 0.003 < float(np.std(noise)) < 0.03
     other = cm.keycld_recording("pendulum", runs=6, frames=5, noise=0.01, seed=2, cache=False)
-    assert not np.array_equal(first.x_clean, other.x_clean)
+    assert not np.array_equal(first.extras["x_clean"], other.extras["x_clean"])
+    # the dataset for learning: the same runs about the pivot, without MuJoCo's joint-space arrays
+    data = cm.keycld_dataset("pendulum", runs=6, frames=5, noise=0.01, seed=1, cache=tmp_path)
+    origin = cm.keycld_origin("pendulum")
+    np.testing.assert_array_equal(data.x, first.x - origin)
+    np.testing.assert_array_equal(data.xdd, first.xdd)
+    assert data.extras == {} and data.info["origin"] == tuple(origin) and data.info["seed"] == 1
     (cached,) = tmp_path.glob("keycld-pendulum-*.npz")
     cached.write_bytes(b"corrupt")
     with pytest.warns(UserWarning, match="unreadable cached dataset"):
@@ -62,14 +72,15 @@ def test_cli_fit_resume_and_load(tmp_path, capsys, monkeypatch):
     monkeypatch.setenv("CLDYN_CACHE", str(tmp_path / "cache"))
     out = tmp_path / "fit"
     common = ["fit", "--scene", "pendulum", "--runs", "12", "--frames", "12", "--validation-runs", "2",
-              "--out", str(out), "--no-progress", "--checkpoint-every", "5", "--validate-every", "5"]
+              "--out", str(out), "--no-progress", "--checkpoint-every", "5", "--validate-every", "5",
+              "--batch-size", "8"]
     assert main(common + ["--steps", "5"]) == 0
     first = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
     assert first["steps"] == 5
     assert main(common + ["--steps", "10", "--resume"]) == 0
     summary = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
     assert summary["steps"] == 10 and summary["validation"] is not None
-    model, spec = load_fitted(out)
+    model, spec = cldyn.load_fit(out)
     assert isinstance(model, cldyn.ConstrainedLagrangian) and spec["model"]["constraint"] == "pendulum"
     assert json.loads((out / "history.json").read_text())[-1]["step"] == 10
     x = np.zeros((3, 8, 2)) + np.linspace(0, 0.1, 8)[None, :, None]

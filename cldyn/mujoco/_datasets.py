@@ -10,6 +10,7 @@ paper's cameras centre on, so that the paper's constraints (`cldyn.keycld_constr
 pivot at the origin.
 """
 
+import dataclasses
 import os
 import pathlib
 import warnings
@@ -17,12 +18,14 @@ import warnings
 import mujoco
 import numpy as np
 
-from .._learn import Sequences
-from ._record import Recording, record
+from .._data import Sequences
+from .._keycld import KEYCLD_SCENES
+from .._misc import check_positive
+from .._progress import AbstractProgressMeter, NoProgressMeter
+from ._record import record
 from ._scenes import keycld_scene
 from ._tree import find_plane, reference_data
 
-KEYCLD_SCENES = ("pendulum", "cartpole", "acrobot")
 # (sampling interval = MuJoCo step, MuJoCo integrator of the scene) per scene, as in the authors' code
 _PROTOCOL = {"pendulum": (0.02, "EULER"), "cartpole": (0.01, "RK4"), "acrobot": (0.01, "RK4")}
 _CACHE_ENV = "CLDYN_CACHE"
@@ -50,13 +53,17 @@ def cache_directory() -> pathlib.Path:
     return base / "datasets"
 
 
-def _matches(recording: Recording, runs, frames, noise, seed, dt) -> bool:
+def _matches(data: Sequences, *, scene, runs, frames, noise, seed, dt) -> bool:
+    info = data.info
     return (
-        recording.num_runs == runs
-        and recording.num_samples == frames
-        and recording.seed == seed
-        and abs(recording.noise - noise) <= 1e-12
-        and abs(recording.dt - dt) <= 1e-12
+        data.num_runs == runs
+        and data.num_samples == frames
+        and info.get("mjcf") == f"keycld/{scene}"
+        and info.get("seed") == seed
+        and isinstance(info.get("noise"), float | int)
+        and abs(info["noise"] - noise) <= 1e-12
+        and abs(data.dt - dt) <= 1e-12
+        and all(name in data.extras for name in ("qpos", "x_clean"))
     )
 
 
@@ -68,8 +75,8 @@ def keycld_recording(
     noise: float = 0.0,
     seed: int = 0,
     cache: "bool | str | os.PathLike" = True,
-    progress: bool = False,
-) -> Recording:
+    progress_meter: AbstractProgressMeter = NoProgressMeter(),
+) -> Sequences:
     """Record a KeyCLD dataset with MuJoCo in the paper's protocol (appendix A.6), with a disk cache.
 
     **Arguments:**
@@ -79,29 +86,40 @@ def keycld_recording(
     - `noise`: standard deviation (metres) of Gaussian noise on the keypoint positions.
     - `seed`: seeds the initial states, the controls and the noise; recorded in the result.
     - `cache`: `True` for `cache_directory()`, a directory, or `False` for no cache. A cached file
-      that is corrupt or does not match the request is regenerated, with a warning.
-    - `progress`: show a progress bar while recording.
+      that is corrupt or does not match the request is regenerated, with a warning; files are
+      written atomically, so an interrupted run never leaves half a file.
+    - `progress_meter`: reports MuJoCo's runs while recording (e.g. `cldyn.TextProgressMeter()`).
 
-    **Returns:** a `cldyn.mujoco.Recording` in world-plane coordinates.
+    **Returns:** what `cldyn.mujoco.record` returns (a `cldyn.Sequences` in world-plane
+    coordinates, with MuJoCo's joint states and forces in `extras`).
+
+    !!! example
+
+        ```python
+        data = cldyn.mujoco.keycld_recording("pendulum", runs=50, seed=1)
+        angles = data.extras["qpos"][..., 0]
+        ```
     """
     key = _scene(scene)
     dt, integrator = _PROTOCOL[key]
-    if runs < 1 or frames < 3 or noise < 0:
-        raise ValueError(f"need runs >= 1, frames >= 3 and noise >= 0; got {runs}, {frames}, {noise}")
+    check_positive("runs", runs, integer=True)
+    check_positive("noise", noise, allow_zero=True)
+    if check_positive("frames", frames, integer=True) < 3:
+        raise ValueError(f"frames must be at least 3, got {frames}")
     path = None
     if cache is not False:
         directory = cache_directory() if cache is True else pathlib.Path(cache)
         path = directory / f"keycld-{key}-runs{runs}-frames{frames}-noise{noise:g}-seed{seed}.npz"
         if path.exists():
             try:
-                recording = Recording.load(path)
+                data = Sequences.load(path)
             except (ValueError, OSError) as error:
                 warnings.warn(f"{path}: unreadable cached dataset ({error}); regenerating it", stacklevel=2)
             else:
-                if _matches(recording, runs, frames, noise, seed, dt):
-                    return recording
+                if _matches(data, scene=key, runs=runs, frames=frames, noise=noise, seed=seed, dt=dt):
+                    return data
                 warnings.warn(f"{path}: cached dataset does not match; regenerating it", stacklevel=2)
-    recording = record(
+    data = record(
         f"keycld/{key}",
         runs=runs,
         duration=(frames - 1) * dt,
@@ -109,27 +127,16 @@ def keycld_recording(
         physics_dt=dt,
         noise=noise,
         seed=seed,
-        progress=progress,
+        progress_meter=progress_meter,
     )
-    if recording.integrator != integrator:
+    if data.info["integrator"] != integrator:
         raise RuntimeError(
-            f"the keycld/{key} scene integrates with {recording.integrator}, but KeyCLD's protocol uses "
+            f"the keycld/{key} scene integrates with {data.info['integrator']}, but KeyCLD's protocol uses "
             f"{integrator}"
         )
     if path is not None:
-        _save_atomically(recording, path)
-    return recording
-
-
-def _save_atomically(recording: Recording, path: pathlib.Path) -> None:
-    path.parent.mkdir(parents=True, exist_ok=True)
-    temporary = path.with_name(f".{path.stem}.{os.getpid()}.tmp.npz")
-    try:
-        recording.save(temporary)
-        os.replace(temporary, path)
-    finally:
-        if temporary.exists():
-            temporary.unlink()
+        data.save(path, overwrite=True)  # replaces only a cache file found unreadable or stale above
+    return data
 
 
 def keycld_dataset(
@@ -140,13 +147,15 @@ def keycld_dataset(
     noise: float = 0.0,
     seed: int = 0,
     cache: "bool | str | os.PathLike" = True,
-    progress: bool = False,
+    progress_meter: AbstractProgressMeter = NoProgressMeter(),
 ) -> Sequences:
-    """A KeyCLD dataset as `cldyn.Sequences` of keypoint states relative to the scene's first joint.
+    """A KeyCLD dataset: keypoint states relative to the scene's first joint, ready for learning.
 
-    The runs of `keycld_recording` (same arguments), shifted by `keycld_origin(scene)` so that the
-    constraints of `cldyn.keycld_constraint(scene)` apply. Split it as the paper does with
-    `data.split(450)`.
+    The runs of `keycld_recording` (same arguments) shifted by `keycld_origin(scene)`
+    (`Sequences.relative_to`), so that the constraints of `cldyn.keycld_constraint(scene)` apply:
+    positions `x`, controls `u`, MuJoCo's keypoint velocities `xd` and accelerations `xdd`, and the
+    recording's `info` (with `origin`); MuJoCo's joint states and forces (`extras`) stay with
+    `keycld_recording`. Split it as the paper does with `data.split(450)`.
 
     !!! example
 
@@ -157,6 +166,6 @@ def keycld_dataset(
         ```
     """
     recording = keycld_recording(
-        scene, runs=runs, frames=frames, noise=noise, seed=seed, cache=cache, progress=progress
+        scene, runs=runs, frames=frames, noise=noise, seed=seed, cache=cache, progress_meter=progress_meter
     )
-    return Sequences.from_recording(recording, origin=keycld_origin(scene))
+    return dataclasses.replace(recording.relative_to(keycld_origin(scene)), extras={})

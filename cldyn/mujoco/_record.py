@@ -4,16 +4,15 @@ MuJoCo itself computes everything recorded: keypoint velocities from the point J
 (`mj_jac`), accelerations from `J qacc + Jdot qvel` (`mj_jacDot`).
 """
 
-import dataclasses
-import json
 import os
-import pathlib
-import zipfile
 from collections.abc import Callable, Sequence
 
 import mujoco
 import numpy as np
 
+from .._data import Sequences
+from .._misc import check_positive
+from .._progress import AbstractProgressMeter, NoProgressMeter
 from ._scenes import load_model
 from ._tree import (
     _HINGE,
@@ -29,201 +28,10 @@ from ._tree import (
     select_keypoints,
 )
 
-SCHEMA = "cldyn.mujoco.Recording/1"
 _ZERO_FRACTION = 0.2  # KeyCLD A.6: no control in 20% of the runs
 _DEFAULT_CONTROL_RANGE = (-2.0, 2.0)  # KeyCLD's actions where the scene sets no control range
-_ARRAYS = (
-    "time",
-    "qpos",
-    "qvel",
-    "qacc",
-    "x",
-    "x_clean",
-    "xd",
-    "xdd",
-    "u",
-    "qfrc_passive",
-    "qfrc_actuator",
-    "qfrc_constraint",
-    "qfrc_bias",
-)
-
-
-@dataclasses.dataclass(frozen=True, eq=False)
-class Recording:
-    """Trajectories recorded from MuJoCo, batch-first: `R` runs of `T` samples.
-
-    **Fields** (arrays are numpy, float64):
-
-    - `time`: sample times from 0, shape `(T,)`.
-    - `qpos`, `qvel`, `qacc`: MuJoCo's joint positions `(R, T, nq)`, velocities and accelerations
-      `(R, T, nv)`.
-    - `x`: keypoint positions as observed, `(R, T, k)` with `k = d * n_keypoints`, laid out
-      `[x1, y1, x2, y2, ...]` (planar, `d = 2`) or `[x1, y1, z1, ...]` (world, `d = 3`, for
-      non-planar models); Gaussian noise of standard deviation `noise` added.
-    - `x_clean`: the same without noise.
-    - `xd`, `xdd`: keypoint velocities and accelerations (without noise).
-    - `u`: the controls applied from each sample to the next, after MuJoCo's clamping to
-      `ctrlrange`, `(R, T, nu)`.
-    - `qfrc_passive`, `qfrc_actuator`, `qfrc_constraint`, `qfrc_bias`: MuJoCo's joint-space
-      forces, `(R, T, nv)`; `M(q) qacc + qfrc_bias = qfrc_actuator + qfrc_passive +
-      qfrc_constraint`.
-    - `keypoint_names`, `joint_names`, `actuator_names`: the names, in column order.
-    - `basis`: for planar keypoints the plane's in-plane unit vectors as rows, `(2, 3)` (planar
-      point = `basis @ world point`); `(0, 3)` for world keypoints.
-    - `mjcf`: where the scene came from (path, suite name, `keycld/<name>` or `<xml string>`).
-    - `mjcf_xml`: the scene's self-contained XML text.
-    - `dt`: the sampling interval; `physics_dt` and `integrator`: MuJoCo's step and integrator.
-    - `noise`: the standard deviation of the position noise (metres); `seed`: the random seed.
-    """
-
-    time: np.ndarray
-    qpos: np.ndarray
-    qvel: np.ndarray
-    qacc: np.ndarray
-    x: np.ndarray
-    x_clean: np.ndarray
-    xd: np.ndarray
-    xdd: np.ndarray
-    u: np.ndarray
-    qfrc_passive: np.ndarray
-    qfrc_actuator: np.ndarray
-    qfrc_constraint: np.ndarray
-    qfrc_bias: np.ndarray
-    keypoint_names: tuple[str, ...]
-    joint_names: tuple[str, ...]
-    actuator_names: tuple[str, ...]
-    basis: np.ndarray
-    mjcf: str
-    mjcf_xml: str
-    dt: float
-    physics_dt: float
-    integrator: str
-    noise: float
-    seed: int
-
-    @property
-    def num_runs(self) -> int:
-        """The number `R` of runs."""
-        return self.qpos.shape[0]
-
-    @property
-    def num_samples(self) -> int:
-        """The number `T` of samples per run."""
-        return self.time.shape[0]
-
-    @property
-    def keypoint_dim(self) -> int:
-        """The dimension `d` of each keypoint: 2 for planar, 3 for world coordinates."""
-        return 2 if self.basis.shape[0] == 2 else 3
-
-    def _metadata(self) -> dict:
-        return {
-            "schema": SCHEMA,
-            "keypoint_names": list(self.keypoint_names),
-            "joint_names": list(self.joint_names),
-            "actuator_names": list(self.actuator_names),
-            "mjcf": self.mjcf,
-            "mjcf_xml": self.mjcf_xml,
-            "dt": self.dt,
-            "physics_dt": self.physics_dt,
-            "integrator": self.integrator,
-            "noise": self.noise,
-            "seed": self.seed,
-        }
-
-    def save(self, path: "str | os.PathLike") -> pathlib.Path:
-        """Save to a compressed `.npz` file (schema in docs/mujoco.md).
-
-        **Arguments:**
-
-        - `path`: the file; `.npz` is appended if missing.
-
-        **Returns:** the path written.
-        """
-        path = pathlib.Path(path)
-        if path.suffix != ".npz":
-            path = path.with_name(path.name + ".npz")
-        path.parent.mkdir(parents=True, exist_ok=True)
-        arrays = {name: getattr(self, name) for name in _ARRAYS}
-        np.savez_compressed(path, basis=self.basis, metadata=np.array(json.dumps(self._metadata())), **arrays)
-        return path
-
-    @classmethod
-    def load(cls, path: "str | os.PathLike") -> "Recording":
-        """Load a recording saved by `save`.
-
-        **Arguments:**
-
-        - `path`: the `.npz` file.
-
-        **Returns:** the `Recording`. A missing, corrupt or foreign file raises an error that names
-        the file and the problem.
-        """
-        path = pathlib.Path(path)
-        if not path.is_file():
-            raise FileNotFoundError(f"{path}: no such recording")
-        try:
-            with np.load(path, allow_pickle=False) as npz:
-                contents = {name: npz[name] for name in npz.files}
-        except (OSError, ValueError, EOFError, zipfile.BadZipFile, KeyError) as error:
-            raise ValueError(f"{path}: not a readable .npz file ({error})") from error
-        if "metadata" not in contents:
-            raise ValueError(f"{path}: not a cldyn recording (no metadata entry)")
-        try:
-            metadata = json.loads(str(contents["metadata"]))
-        except json.JSONDecodeError as error:
-            raise ValueError(f"{path}: corrupt metadata ({error})") from error
-        if metadata.get("schema") != SCHEMA:
-            raise ValueError(f"{path}: schema {metadata.get('schema')!r}, expected {SCHEMA!r}")
-        missing = [name for name in (*_ARRAYS, "basis") if name not in contents]
-        if missing:
-            raise ValueError(f"{path}: missing arrays {missing}")
-        try:
-            recording = cls(
-                **{name: np.asarray(contents[name], dtype=float) for name in _ARRAYS},
-                basis=np.asarray(contents["basis"], dtype=float).reshape(-1, 3),
-                keypoint_names=tuple(metadata["keypoint_names"]),
-                joint_names=tuple(metadata["joint_names"]),
-                actuator_names=tuple(metadata["actuator_names"]),
-                mjcf=str(metadata["mjcf"]),
-                mjcf_xml=str(metadata["mjcf_xml"]),
-                dt=float(metadata["dt"]),
-                physics_dt=float(metadata["physics_dt"]),
-                integrator=str(metadata["integrator"]),
-                noise=float(metadata["noise"]),
-                seed=int(metadata["seed"]),
-            )
-        except KeyError as error:
-            raise ValueError(f"{path}: metadata lacks {error}") from error
-        recording.check(where=str(path))
-        return recording
-
-    def check(self, *, where: str = "recording") -> None:
-        """Raise a `ValueError` naming the problem if the arrays' shapes disagree."""
-        runs, samples = self.qpos.shape[:2] if self.qpos.ndim == 3 else (None, None)
-        d = self.keypoint_dim
-        k = d * len(self.keypoint_names)
-        nv, nu = self.qvel.shape[-1] if self.qvel.ndim == 3 else None, len(self.actuator_names)
-        expected = {
-            "time": (samples,),
-            "qvel": (runs, samples, nv),
-            "qacc": (runs, samples, nv),
-            "x": (runs, samples, k),
-            "x_clean": (runs, samples, k),
-            "xd": (runs, samples, k),
-            "xdd": (runs, samples, k),
-            "u": (runs, samples, nu),
-            "qfrc_passive": (runs, samples, nv),
-            "qfrc_actuator": (runs, samples, nv),
-            "qfrc_constraint": (runs, samples, nv),
-            "qfrc_bias": (runs, samples, nv),
-        }
-        if runs is None:
-            raise ValueError(f"{where}: qpos must have shape (runs, samples, nq), got {self.qpos.shape}")
-        for name, shape in expected.items():
-            if getattr(self, name).shape != shape:
-                raise ValueError(f"{where}: {name} has shape {getattr(self, name).shape}, expected {shape}")
+# MuJoCo's joint-space forces: M(q) qacc + qfrc_bias = qfrc_actuator + qfrc_passive + qfrc_constraint
+_FORCES = ("qfrc_passive", "qfrc_actuator", "qfrc_constraint", "qfrc_bias")
 
 
 # -- what to apply ----------------------------------------------------------------------------------
@@ -421,9 +229,13 @@ def simulate_mujoco(
     samples: int,
     substeps: int,
     *,
-    progress: bool = False,
+    progress_meter: AbstractProgressMeter = NoProgressMeter(),
 ) -> dict[str, np.ndarray]:
-    """Step MuJoCo from each initial state and sample every `substeps` steps."""
+    """Step MuJoCo from each initial state and sample every `substeps` steps.
+
+    `u` holds the controls MuJoCo applied (after clamping to `ctrlrange`), `u_commanded` those
+    asked for.
+    """
     runs = qpos0.shape[0]
     kinematics = _Kinematics(model, keypoints, plane)
     data = mujoco.MjData(model)
@@ -436,37 +248,42 @@ def simulate_mujoco(
         "xd": np.zeros((runs, samples, k)),
         "xdd": np.zeros((runs, samples, k)),
         "u": np.zeros((runs, samples, model.nu)),
-        **{
-            name: np.zeros((runs, samples, model.nv))
-            for name in ("qfrc_passive", "qfrc_actuator", "qfrc_constraint", "qfrc_bias")
-        },
+        "u_commanded": np.zeros((runs, samples, model.nu)),
+        **{name: np.zeros((runs, samples, model.nv)) for name in _FORCES},
         "constraint_rows": np.zeros((runs, samples), dtype=int),
     }
-    iterator = range(runs)
-    if progress:
-        from tqdm import tqdm
-
-        iterator = tqdm(iterator, desc="MuJoCo runs", unit="run")
-    for r in iterator:
-        mujoco.mj_resetData(model, data)
-        data.qpos[:] = qpos0[r]
-        data.qvel[:] = qvel0[r]
-        for s in range(samples):
-            ctrl = controls(r, s, data.time, data.qpos, data.qvel)
-            data.ctrl[:] = ctrl
-            mujoco.mj_forward(model, data)
-            out["qpos"][r, s] = data.qpos
-            out["qvel"][r, s] = data.qvel
-            out["qacc"][r, s] = data.qacc
-            out["u"][r, s] = _applied_ctrl(model, np.asarray(ctrl, dtype=float))
-            for name in ("qfrc_passive", "qfrc_actuator", "qfrc_constraint", "qfrc_bias"):
-                out[name][r, s] = getattr(data, name)
-            out["constraint_rows"][r, s] = data.nefc
-            out["x_clean"][r, s], out["xd"][r, s], out["xdd"][r, s] = kinematics(data)
-            if s + 1 < samples:
-                for _ in range(substeps):
-                    mujoco.mj_step(model, data)
+    state = progress_meter.start(runs, desc="MuJoCo runs", unit="run")
+    try:
+        for r in range(runs):
+            _run(model, data, kinematics, out, r, qpos0[r], qvel0[r], controls=controls, samples=samples,
+                 substeps=substeps)
+            state = progress_meter.update(state, r + 1)
+    finally:
+        progress_meter.close(state)
     return out
+
+
+def _run(model, data, kinematics, out, r, qpos0, qvel0, *, controls, samples, substeps) -> None:
+    """Run `r`: from `(qpos0, qvel0)`, each sample written into `out[...][r]`."""
+    mujoco.mj_resetData(model, data)
+    data.qpos[:] = qpos0
+    data.qvel[:] = qvel0
+    for s in range(samples):
+        ctrl = np.asarray(controls(r, s, data.time, data.qpos, data.qvel), dtype=float)
+        data.ctrl[:] = ctrl
+        mujoco.mj_forward(model, data)
+        out["qpos"][r, s] = data.qpos
+        out["qvel"][r, s] = data.qvel
+        out["qacc"][r, s] = data.qacc
+        out["u"][r, s] = _applied_ctrl(model, ctrl)
+        out["u_commanded"][r, s] = ctrl
+        for name in _FORCES:
+            out[name][r, s] = getattr(data, name)
+        out["constraint_rows"][r, s] = data.nefc
+        out["x_clean"][r, s], out["xd"][r, s], out["xdd"][r, s] = kinematics(data)
+        if s + 1 < samples:
+            for _ in range(substeps):
+                mujoco.mj_step(model, data)
 
 
 def _integrator(model, integrator: str | None) -> None:
@@ -506,8 +323,8 @@ def record(
     physics_dt: float | None = None,
     integrator: str | None = None,
     control_range=None,
-    progress: bool = False,
-) -> Recording:
+    progress_meter: AbstractProgressMeter = NoProgressMeter(),
+) -> Sequences:
     """Record trajectories of a MuJoCo scene.
 
     Each run starts from its initial state and is sampled every `dt` seconds from `t = 0` to
@@ -531,33 +348,55 @@ def record(
       policy `control(t, qpos, qvel) -> ctrl`, evaluated at each sample.
     - `keypoints`: names of sites to use as keypoints; the defaults of `from_mjcf` otherwise.
     - `noise`: standard deviation (metres) of Gaussian noise added to the keypoint positions `x`;
-      `x_clean` keeps them exact.
+      `extras["x_clean"]` keeps them exact.
     - `seed`: seeds initial states, controls and noise.
     - `physics_dt`: MuJoCo's step, dividing `dt`; by default the largest step not above the model's
       timestep.
     - `integrator`: `"euler"`, `"rk4"`, `"implicit"` or `"implicitfast"`; the model's by default.
     - `control_range`: `(low, high)` for random controls, or `(nu, 2)` bounds; by default each
       actuator's `ctrlrange` where it is limited and `(-2, 2)` elsewhere (KeyCLD).
-    - `progress`: show a progress bar.
+    - `progress_meter`: reports the runs as they finish, e.g. `cldyn.TextProgressMeter()`; none by
+      default.
 
-    **Returns:** a `Recording`.
+    **Returns:** a `cldyn.Sequences` of `R` runs of `T` samples (numpy float64 arrays):
+
+    - `x`: keypoint positions as observed, `(R, T, k)` with `k = d * n_keypoints`, laid out
+      `[x1, y1, x2, y2, ...]` (planar, `d = 2`) or `[x1, y1, z1, ...]` (world, `d = 3`, for
+      non-planar models), with the noise; `xd`, `xdd`: keypoint velocities and accelerations (exact).
+    - `u`: the controls MuJoCo applied from each sample to the next (after its clamping to
+      `ctrlrange`), `(R, T, nu)`; `dt` the sampling interval, `ts` the sample times.
+    - `extras`: `qpos` `(R, T, nq)`, `qvel`, `qacc` `(R, T, nv)`; `x_clean` (the positions without
+      noise); MuJoCo's joint-space forces `qfrc_passive`, `qfrc_actuator`, `qfrc_constraint`,
+      `qfrc_bias` `(R, T, nv)`, with `M(q) qacc + qfrc_bias = qfrc_actuator + qfrc_passive +
+      qfrc_constraint`; and `u_commanded`, the controls asked for, only where MuJoCo clamped some.
+    - `info`: `keypoint_names`, `joint_names`, `actuator_names` (in column order); `basis`, the
+      plane's in-plane unit vectors as rows (planar point = `basis @ world point`; `[]` for world
+      keypoints) and `keypoint_dim`; `mjcf` (where the scene came from: path, suite name,
+      `keycld/<name>` or `<xml string>`) and `mjcf_xml` (its self-contained XML text); `physics_dt`
+      and `integrator` (MuJoCo's step and integrator); `noise`, `seed`.
 
     !!! example
 
         ```python
         data = cldyn.mujoco.record("keycld/pendulum", runs=500, duration=0.98, dt=0.02, seed=0)
         data.save("pendulum.npz")
+        qpos, joints = data.extras["qpos"], data.info["joint_names"]
         ```
     """
+    check_positive("duration", duration, allow_zero=True)
+    if dt is not None:
+        check_positive("dt", dt)
+    if physics_dt is not None:
+        check_positive("physics_dt", physics_dt)
+    if runs is not None:
+        check_positive("runs", runs, integer=True)
+    check_positive("noise", noise, allow_zero=True)
+    seed = _seed(seed)
     model, xml, source = load_model(mjcf)
     dt = float(model.opt.timestep) if dt is None else float(dt)
-    if not dt > 0 or not duration >= 0:
-        raise ValueError(f"need dt > 0 and duration >= 0, got dt={dt}, duration={duration}")
     samples = int(round(duration / dt)) + 1
     if abs((samples - 1) * dt - duration) > 1e-9 * max(1.0, duration):
         raise ValueError(f"duration={duration} must be a whole multiple of dt={dt}")
-    if noise < 0:
-        raise ValueError(f"noise must be non-negative, got {noise}")
     substeps, step = _substeps(dt, physics_dt, float(model.opt.timestep))
     model.opt.timestep = step
     _integrator(model, integrator)
@@ -569,27 +408,38 @@ def record(
     controls = _control_source(
         model, control, runs, samples, np.random.default_rng(control_seed), control_range
     )
-    out = simulate_mujoco(model, chosen, plane, qpos0, qvel0, controls, samples, substeps, progress=progress)
-    out.pop("constraint_rows")
-    x = out["x_clean"]
-    if noise > 0:
-        x = x + noise * np.random.default_rng(noise_seed).standard_normal(x.shape)
-    integrator_name = mujoco.mjtIntegrator(int(model.opt.integrator)).name.removeprefix("mjINT_")
-    return Recording(
-        time=np.arange(samples) * dt,
-        x=x,
-        **out,
-        keypoint_names=tuple(k.name for k in chosen),
-        joint_names=tuple(joint_name(model, j) for j in range(model.njnt)),
-        actuator_names=tuple(
-            name_of(model, mujoco.mjtObj.mjOBJ_ACTUATOR, a, "actuator") for a in range(model.nu)
-        ),
-        basis=np.zeros((0, 3)) if plane is None else plane.basis + 0.0,
-        mjcf=source,
-        mjcf_xml=xml,
-        dt=dt,
-        physics_dt=step,
-        integrator=integrator_name,
-        noise=float(noise),
-        seed=int(seed),
+    out = simulate_mujoco(
+        model, chosen, plane, qpos0, qvel0, controls, samples, substeps, progress_meter=progress_meter
     )
+    out.pop("constraint_rows")
+    x_clean = out["x_clean"]
+    x = x_clean
+    if noise > 0:
+        x = x_clean + noise * np.random.default_rng(noise_seed).standard_normal(x_clean.shape)
+    extras = {name: out[name] for name in ("qpos", "qvel", "qacc", "x_clean", *_FORCES)}
+    if not np.array_equal(out["u_commanded"], out["u"]):
+        extras["u_commanded"] = out["u_commanded"]
+    integrator_name = mujoco.mjtIntegrator(int(model.opt.integrator)).name.removeprefix("mjINT_")
+    basis = np.zeros((0, 3)) if plane is None else plane.basis + 0.0
+    info = {
+        "keypoint_names": [k.name for k in chosen],
+        "joint_names": [joint_name(model, j) for j in range(model.njnt)],
+        "actuator_names": [
+            name_of(model, mujoco.mjtObj.mjOBJ_ACTUATOR, a, "actuator") for a in range(model.nu)
+        ],
+        "basis": basis.tolist(),
+        "keypoint_dim": 2 if plane is not None else 3,
+        "mjcf": source,
+        "mjcf_xml": xml,
+        "physics_dt": step,
+        "integrator": integrator_name,
+        "noise": float(noise),
+        "seed": seed,
+    }
+    return Sequences(x, out["u"], dt, xd=out["xd"], xdd=out["xdd"], extras=extras, info=info)
+
+
+def _seed(seed) -> int:
+    if isinstance(seed, bool) or not isinstance(seed, int | np.integer) or seed < 0:
+        raise ValueError(f"seed must be a non-negative integer, got {seed!r}")
+    return int(seed)
