@@ -2,7 +2,9 @@
 one `cldyn <command>: error: ...` line and status 2 (never a traceback), and tiny runs of each command
 do their job."""
 
+import importlib
 import json
+import sys
 
 import jax
 import numpy as np
@@ -93,6 +95,18 @@ def test_a_missing_input_and_an_unknown_scene_are_one_error_line(tmp_path, capsy
     status, _, err = _run(capsys, ["validate", "--mjcf", "pendulumm", "--out", str(tmp_path / "v")])
     assert status == 2 and err.startswith("cldyn validate: error: ")
     assert "pendulumm" in err or "cldyn[mujoco]" in err
+
+
+def test_without_mujoco_the_error_names_the_extra(tmp_path, capsys, monkeypatch):
+    for name in [n for n in sys.modules if n == "cldyn.mujoco" or n.startswith("cldyn.mujoco.")]:
+        monkeypatch.delitem(sys.modules, name)
+    monkeypatch.setitem(sys.modules, "mujoco", None)  # as if it were not installed
+    with pytest.raises(
+        ImportError, match=r"cldyn.mujoco needs the optional package 'mujoco'.*cldyn\[mujoco\]"
+    ):
+        importlib.import_module("cldyn.mujoco")
+    status, _, err = _run(capsys, ["record", "--mjcf", "keycld/pendulum", "--out", str(tmp_path / "x.npz")])
+    assert status == 2 and "cldyn record: error: cldyn.mujoco needs" in err and "cldyn[mujoco]" in err
 
 
 def test_ctrl_c_exits_130_without_a_traceback(tmp_path, capsys, monkeypatch):

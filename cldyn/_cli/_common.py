@@ -8,7 +8,6 @@ line refuse the same values with the same words.
 import argparse
 import os
 import pathlib
-import tempfile
 from collections.abc import Callable
 
 from .._misc import check_fraction, check_positive
@@ -88,20 +87,20 @@ def enable_float64() -> None:
 
 
 def _writable_directory(directory: pathlib.Path, label: str) -> None:
-    """Create `directory` if needed and prove that a file can be written in it."""
-    try:
-        directory.mkdir(parents=True, exist_ok=True)
-        with tempfile.TemporaryFile(dir=directory):
-            pass
-    except FileExistsError:
-        raise CommandError(f"{label}: {directory} is a file, not a directory") from None
-    except OSError as error:
-        reason = error.strerror or str(error)
-        raise CommandError(f"{label}: cannot write in {directory} ({reason})") from None
+    """Check that files can be created in `directory`, or in its nearest existing ancestor if it does
+    not exist yet (nothing is created here: a run that fails later leaves no empty directories)."""
+    probe = directory
+    while not probe.exists() and probe.parent != probe:
+        probe = probe.parent
+    if not probe.is_dir():
+        raise CommandError(f"{label}: {probe} is a file, not a directory")
+    if not os.access(probe, os.W_OK | os.X_OK):
+        raise CommandError(f"{label}: cannot write in {probe} (permission denied or read-only)")
 
 
 def output_directory(path: "str | os.PathLike") -> pathlib.Path:
-    """Check, before any work, that results can be written into the directory `path` (created if needed)."""
+    """Check, before any work, that results can be written into the directory `path` (which the
+    command's writers create if needed)."""
     directory = pathlib.Path(path)
     if directory.exists() and not directory.is_dir():
         raise CommandError(f"--out {directory}: exists and is not a directory")
@@ -110,7 +109,8 @@ def output_directory(path: "str | os.PathLike") -> pathlib.Path:
 
 
 def output_file(path: "str | os.PathLike") -> pathlib.Path:
-    """Check, before any work, that the file `path` can be written (its directory created if needed)."""
+    """Check, before any work, that the file `path` can be written (its directory is created by the
+    writer if needed)."""
     file = pathlib.Path(path)
     if file.is_dir():
         raise CommandError(f"--out {file}: is a directory; give a file name")

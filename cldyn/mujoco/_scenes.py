@@ -69,7 +69,13 @@ def _to_text(root: ET.Element) -> str:
 @functools.cache
 def _suite_root(name: str) -> ET.Element:
     module = _import_quietly(f"dm_control.suite.{name}")
-    xml, assets = module.get_model_and_assets()
+    try:
+        xml, assets = module.get_model_and_assets()
+    except (AttributeError, TypeError):  # domains that generate their MJCF from arguments in code
+        raise ValueError(
+            f"dm_control suite domain {name!r} builds its MJCF in code, not from a fixed XML file; give "
+            "the MJCF as a file or an XML string instead"
+        ) from None
 
     def read(file):
         return assets[file]
