@@ -298,7 +298,7 @@ def evaluate(
     - `dim`: dimension of each keypoint.
 
     The data are cast to the model's floating dtype; evaluate a float32-trained model in float64 by
-    casting it first (with `jax_enable_x64`).
+    casting it first (in JAX's 64-bit mode).
 
     **Returns:** an `Evaluation` with the rollouts, per-run VPT, geometric-mean relative error and
     energies (for Lagrangian models).
