@@ -14,13 +14,13 @@ def load(scene: str, name: str):
 
     `origin` is the point the model's keypoints are relative to (`cldyn.mujoco.keycld_origin`).
     """
+    import cldyn
     import cldyn.mujoco as cm
-    from cldyn._learn_cli import load_fitted
 
     directory = MODELS / f"{scene}-{name}"
     if not (directory / "model.eqx").exists():
         return None
-    model, _ = load_fitted(directory)
+    model, _ = cldyn.load_fit(directory)
     model = jax.tree.map(lambda a: a.astype(jnp.float64) if eqx.is_inexact_array(a) else a, model)
     return model, [float(v) for v in cm.keycld_origin(scene)]
 

@@ -30,7 +30,7 @@ a perturbation of the initial velocity more than 10-fold relative to free drift 
 
 Writes benchmarks/results/learning.json and learning.md, loss-curve and rollout plots (PNG), and the
 fitted models under benchmarks/results/learning/<scene>-<model>/ (loadable with
-`cldyn._learn_cli.load_fitted`); with `--order 2` the same under `learning_order2*`. Prints one JSON
+`cldyn.load_fit`); with `--order 2` the same under `learning_order2*`. Prints one JSON
 object.
 
     python benchmarks/learning.py [--steps 6000] [--systems pendulum cartpole acrobot]
@@ -61,7 +61,6 @@ import matplotlib.pyplot as plt  # noqa: E402
 
 import cldyn  # noqa: E402
 import cldyn.mujoco as cm  # noqa: E402
-from cldyn._learn_cli import SPEC_NAME, build_model  # noqa: E402
 
 RESULTS = pathlib.Path(__file__).parent / "results"
 MODELS = ("keycld", "keycld-coupled", "nc", "node2")
@@ -208,13 +207,13 @@ def _fit(scene, name, train, validation, args, out: pathlib.Path):
         "depth": 3 if name == "node2" else 2,
     }
     model_key = jax.random.fold_in(jax.random.key(MODEL_SEED), MODELS.index(name))
-    model = build_model(spec, model_key)
+    model = cldyn.model_from_spec(spec, key=model_key)
     schedule = optax.cosine_decay_schedule(args.lr, args.steps, alpha=0.01)
     optimizer = optax.chain(optax.clip(5.0), optax.adam(schedule))
     if out.exists():
         shutil.rmtree(out)
     out.mkdir(parents=True)
-    (out / SPEC_NAME).write_text(
+    (out / "fit.json").write_text(
         json.dumps(
             {
                 "model": spec,
@@ -239,7 +238,7 @@ def _fit(scene, name, train, validation, args, out: pathlib.Path):
         train,
         loss=cldyn.Collocation(order=args.order),
         steps=args.steps,
-        batch_size=args.batch_size,
+        batching=cldyn.Runs(args.batch_size),
         key=jax.random.key(1000 + MODELS.index(name)),
         optimizer=optimizer,
         validation=validation,
@@ -247,7 +246,6 @@ def _fit(scene, name, train, validation, args, out: pathlib.Path):
         log_every=max(args.steps // 200, 1),
         out=out,
         checkpoint_every=args.steps,
-        progress=False,
     )
     seconds = time.perf_counter() - start
     (out / "checkpoint.eqx").unlink(missing_ok=True)  # the final model is in model.eqx
@@ -285,12 +283,9 @@ def run(args) -> dict:
         train, validation = data.split(450)
         frames = int(round(1.0 / data.dt)) + 3
         test = cm.keycld_dataset(scene, runs=50, frames=frames, seed=TEST_SEED)
-        raw_validation = cldyn.Sequences.from_recording(cm.keycld_recording(scene, seed=DATA_SEED)).split(
-            450
-        )[1]
-        raw_test = cldyn.Sequences.from_recording(
-            cm.keycld_recording(scene, runs=50, frames=frames, seed=TEST_SEED)
-        )
+        # the recordings themselves: world-plane keypoints, for the exact model
+        raw_validation = cm.keycld_recording(scene, seed=DATA_SEED).split(450)[1]
+        raw_test = cm.keycld_recording(scene, runs=50, frames=frames, seed=TEST_SEED)
         rom = cldyn.range_of_motion(test.x)
         exact = cm.from_mjcf(f"keycld/{scene}").system
         amplification = _amplification(exact, raw_test, 1.0)

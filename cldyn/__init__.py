@@ -8,6 +8,12 @@ import importlib.metadata
 
 from . import systems as systems
 from ._baselines import SecondOrderNeuralODE as SecondOrderNeuralODE
+from ._batching import (
+    AbstractBatching as AbstractBatching,
+    Runs as Runs,
+    Windows as Windows,
+)
+from ._checkpoint import CheckpointError as CheckpointError
 from ._constraint import (
     AbstractConstraint as AbstractConstraint,
     Anchor as Anchor,
@@ -31,12 +37,22 @@ from ._coordinates import (
     SliderPosition as SliderPosition,
     wrap_angle as wrap_angle,
 )
+from ._data import (
+    Sequences as Sequences,
+    central_difference as central_difference,
+)
 from ._dissipation import (
     AbstractDissipation as AbstractDissipation,
     DissipationSum as DissipationSum,
     JointCoulomb as JointCoulomb,
     JointDamping as JointDamping,
     KeypointDrag as KeypointDrag,
+)
+from ._fit import (
+    FitResult as FitResult,
+    NonFiniteLossError as NonFiniteLossError,
+    fit as fit,
+    load_fit as load_fit,
 )
 from ._identify import (
     EFFECTS as EFFECTS,
@@ -68,20 +84,15 @@ from ._keycld import (
     KEYCLD_SCENES as KEYCLD_SCENES,
     keycld_constraint as keycld_constraint,
     keycld_model as keycld_model,
+    model_from_spec as model_from_spec,
 )
-from ._learn import (
+from ._loss import (
     AbstractLoss as AbstractLoss,
-    CheckpointError as CheckpointError,
     Collocation as Collocation,
-    FitResult as FitResult,
     InverseDynamics as InverseDynamics,
     LossSum as LossSum,
     MultipleShooting as MultipleShooting,
-    NonFiniteLossError as NonFiniteLossError,
     Rollout as Rollout,
-    Sequences as Sequences,
-    central_difference as central_difference,
-    fit as fit,
 )
 from ._mass import (
     AbstractMass as AbstractMass,

@@ -1,13 +1,18 @@
-"""KeyCLD's learnable models (appendix A.4) and the constraint structure of its three scenes."""
+"""KeyCLD's learnable models (appendix A.4), the constraint structure of its three scenes, and the
+models of its ablation built from a JSON specification (what a fit directory records)."""
+
+from collections.abc import Callable
 
 import jax
 import jax.numpy as jnp
 from jaxtyping import PRNGKeyArray
 
+from ._baselines import SecondOrderNeuralODE
 from ._constraint import AbstractConstraint, Anchor, Distance, FixedCoordinate, Stack
 from ._custom_types import ArrayInput
 from ._input import MLPInput
 from ._mass import CoupledMasses, PointMasses
+from ._misc import check_positive
 from ._potential import MLPPotential
 from ._system import ConstrainedLagrangian
 
@@ -77,7 +82,6 @@ def keycld_model(
     )
 
 
-
 def keycld_constraint(system: str) -> AbstractConstraint:
     """The constraints of KeyCLD's models (paper figure 7), with the pivot at the origin.
 
@@ -102,3 +106,81 @@ def keycld_constraint(system: str) -> AbstractConstraint:
     if key == "acrobot":
         return Stack([Anchor(0), Distance(0, 1)])
     raise ValueError(f"unknown KeyCLD system {system!r}; choose one of {', '.join(KEYCLD_SCENES)}")
+
+
+def _keycld(spec: dict, key, mass: str):
+    scene = spec.get("constraint")
+    scene = scene.removeprefix("keycld/") if isinstance(scene, str) else scene
+    if scene not in KEYCLD_SCENES:
+        raise ValueError(
+            f"model spec: {spec['kind']!r} needs a constraint, one of {', '.join(KEYCLD_SCENES)}; "
+            f"got {scene!r}"
+        )
+    return keycld_model(
+        spec["size"],
+        spec["num_inputs"],
+        keycld_constraint(scene),
+        key=key,
+        width=spec["width"],
+        depth=spec["depth"],
+        mass=mass,
+    )
+
+
+def _nc(spec: dict, key):
+    return keycld_model(
+        spec["size"], spec["num_inputs"], None, key=key, width=spec["width"], depth=spec["depth"]
+    )
+
+
+def _node2(spec: dict, key):
+    return SecondOrderNeuralODE(
+        spec["size"], spec["num_inputs"], width=spec["width"], depth=spec["depth"], key=key
+    )
+
+
+# The builders of the model kinds a fit directory can name; a spec is JSON, so its kind is a string.
+_BUILDERS: dict[str, Callable] = {
+    "keycld": lambda spec, key: _keycld(spec, key, "point"),
+    "keycld-coupled": lambda spec, key: _keycld(spec, key, "coupled"),
+    "nc": _nc,
+    "node2": _node2,
+}
+MODEL_KINDS = tuple(_BUILDERS)
+
+
+def model_from_spec(spec: dict, *, key: PRNGKeyArray):
+    """The untrained model that a specification describes (the `model` entry of a fit's `fit.json`).
+
+    **Arguments:**
+
+    - `spec`: a dict with `kind` (`"keycld"`, `"keycld-coupled"` (coupled masses), `"nc"` (KeyCLD
+      without constraints) or `"node2"` (`SecondOrderNeuralODE`)), `size` (`k`), `num_inputs`
+      (`l`), `width` and `depth` of the networks, and for the KeyCLD kinds `constraint`, a scene of
+      `cldyn.KEYCLD_SCENES`.
+    - `key`: a `jax.random` key for the initial parameters.
+
+    **Returns:** the model. A spec that lacks an entry or names an unknown kind or scene raises a
+    `ValueError` that says which.
+
+    !!! example
+
+        ```python
+        spec = {"kind": "keycld", "size": 4, "num_inputs": 2, "width": 32, "depth": 2,
+                "constraint": "acrobot"}
+        model = cldyn.model_from_spec(spec, key=jax.random.key(0))
+        ```
+    """
+    if not isinstance(spec, dict):
+        raise ValueError(f"model spec must be a dict, got {type(spec).__name__}")
+    builder = _BUILDERS.get(spec.get("kind"))
+    if builder is None:
+        raise ValueError(
+            f"model spec: unknown kind {spec.get('kind')!r}; choose one of {', '.join(MODEL_KINDS)}"
+        )
+    spec = dict(spec)
+    for name, allow_zero in (("size", False), ("num_inputs", True), ("width", False), ("depth", True)):
+        if name not in spec:
+            raise ValueError(f"model spec: missing {name!r}")
+        spec[name] = check_positive(f"model spec: {name}", spec[name], integer=True, allow_zero=allow_zero)
+    return builder(spec, key)

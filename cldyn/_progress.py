@@ -134,7 +134,7 @@ class TextProgressMeter(AbstractProgressMeter):
         ```
     """
 
-    interval: float = eqx.field(static=True, default=10.0)
+    interval: float | int = eqx.field(static=True, default=10.0)
     file: io.TextIOBase | None = eqx.field(static=True, default=None)
 
     def __check_init__(self):

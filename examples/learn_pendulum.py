@@ -28,8 +28,9 @@ def main() -> None:
     train, validation = data.split(450)
     model = cldyn.keycld_model(2, 1, cldyn.keycld_constraint("pendulum"), key=jax.random.key(0))
     result = cldyn.fit(
-        model, train, loss=cldyn.Collocation(order=4), steps=args.steps, batch_size=32, key=jax.random.key(1),
-        validation=validation, validate_every=500, out=args.out,
+        model, train, loss=cldyn.Collocation(order=4), steps=args.steps, batching=cldyn.Runs(32),
+        key=jax.random.key(1), validation=validation, validate_every=500, out=args.out,
+        progress_meter=cldyn.TextProgressMeter(),
     )
     print(f"trained in {result.seconds:.1f} s; last record {result.history[-1]}")
 

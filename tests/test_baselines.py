@@ -83,7 +83,7 @@ def test_coupled_masses_are_point_masses_when_diagonal_and_exact_for_a_rod():
 def test_modules_are_abstract_or_final():
     # STYLE 4: a subclassed module is abstract; every concrete one is final
     modules = [
-        obj for module in (cldyn._learn, cldyn._baselines, cldyn._metrics)
+        obj for module in (cldyn._loss, cldyn._batching, cldyn._progress, cldyn._baselines, cldyn._evaluate)
         for _, obj in inspect.getmembers(module, inspect.isclass)
         if issubclass(obj, eqx.Module) and obj.__module__ == module.__name__
     ]
