@@ -128,7 +128,7 @@ def _describe(thing) -> str | None:
     if thing is None:
         return None
     if isinstance(thing, eqx.Module):
-        return eqx.tree_pformat(thing, short_arrays=False)
+        return eqx.tree_pformat(thing)  # arrays as dtype[shape]: a large loss weight stays short
     name = getattr(thing, "__qualname__", None)
     if name is not None:
         return f"{getattr(thing, '__module__', '')}.{name}"
