@@ -1,9 +1,9 @@
-"""Finding missing physics: the acceptance matrix of tests/test_identify.py, as a table.
+"""Finding missing physics: the acceptance matrix of tests/test_identify_mujoco.py, as a table.
 
 Effects injected one at a time into the KeyCLD pendulum, cart-pole and acrobot MJCFs (MuJoCo RK4 at
 2 ms, 100 Hz samples, 20 runs of 3 s), identified against the nominal MJCF; plus 1 mm position noise
 for damping, two effects at once, and effect-free data (10 seeds). The protocol and the cases are those
-of the tests (imported from tests/test_identify.py).
+of the tests (imported from tests/test_identify_mujoco.py).
 
 Writes benchmarks/results/identify.json and identify.md; prints the JSON.
 
@@ -27,25 +27,26 @@ from _common import machine, write  # noqa: E402
 
 jax.config.update("jax_enable_x64", True)
 
-from test_identify import CASES, _identify  # noqa: E402
+from test_identify_mujoco import CASES, _identify  # noqa: E402
 
 
 def row(label, result, effect, where, truth):
     top = result.detected[0] if result.detected else None
-    found = top is not None and (top.candidate.effect, top.candidate.where) == (effect, where)
+    found = top is not None and (top.name, top.where) == (effect, where)
     return {
         "case": label,
         "truth": truth,
-        "top": None if top is None else f"{top.candidate.effect}[{top.candidate.where}]",
+        "top": None if top is None else f"{top.name}[{top.where}]",
         "value": None if top is None else top.value,
         "ci": None if top is None else list(top.ci),
         "relative_error": None if top is None else abs(top.value - truth) / truth,
         "correct_top": bool(found),
         "others": [d.candidate.label for d in result.detected[1:]],
-        "rollout_before_m": result.before["rollout_rmse_1s"],
-        "rollout_after_m": result.after["rollout_rmse_1s"],
-        "rollout_drop": result.before["rollout_rmse_1s"] / result.after["rollout_rmse_1s"],
-        "accel_drop": result.before["accel_rmse"] / result.after["accel_rmse"],
+        "rollout_before_m": result.before.rollout_rmse_1s,
+        "rollout_after_m": result.after.rollout_rmse_1s,
+        "rollout_drop": result.before.rollout_rmse_1s / result.after.rollout_rmse_1s,
+        "accel_drop": result.before.accel_rmse / result.after.accel_rmse,
+        "warnings": list(result.warnings),
     }
 
 
@@ -97,8 +98,8 @@ def main():
         "Two effects at once (acrobot: damping 0.1 on the elbow, stiffness 10 with springref 20 deg on the "
         "shoulder): "
         + ", ".join(f"{d.candidate.label} = {d.value:.4g}" for d in two.detected)
-        + f"; rollout {1e3 * two.before['rollout_rmse_1s']:.2f} -> "
-        f"{1e3 * two.after['rollout_rmse_1s']:.3f} mm.",
+        + f"; rollout {1e3 * two.before.rollout_rmse_1s:.2f} -> "
+        f"{1e3 * two.after.rollout_rmse_1s:.3f} mm.",
         "",
     ]
     result = {

@@ -24,9 +24,12 @@ from ._constraint import (
 )
 from ._control import (
     AbstractControl as AbstractControl,
+    AbstractDampingInjection as AbstractDampingInjection,
     ConstantControl as ConstantControl,
     EnergyShaping as EnergyShaping,
     FeedbackControl as FeedbackControl,
+    KeypointDampingInjection as KeypointDampingInjection,
+    OutputDampingInjection as OutputDampingInjection,
     TimeVaryingControl as TimeVaryingControl,
     ZeroOrderHold as ZeroOrderHold,
 )
@@ -46,7 +49,19 @@ from ._dissipation import (
     DissipationSum as DissipationSum,
     JointCoulomb as JointCoulomb,
     JointDamping as JointDamping,
+    JointQuadraticDamping as JointQuadraticDamping,
     KeypointDrag as KeypointDrag,
+)
+from ._evaluate import (
+    Evaluation as Evaluation,
+    evaluate as evaluate,
+    geometric_mean_relative_error as geometric_mean_relative_error,
+    keypoint_error as keypoint_error,
+    range_of_motion as range_of_motion,
+    relative_error as relative_error,
+    rollout as rollout,
+    rollout_energy as rollout_energy,
+    valid_prediction_time as valid_prediction_time,
 )
 from ._fit import (
     FitResult as FitResult,
@@ -56,10 +71,20 @@ from ._fit import (
 )
 from ._identify import (
     EFFECTS as EFFECTS,
+    AbstractEffect as AbstractEffect,
+    ActuatorGainEffect as ActuatorGainEffect,
     Candidate as Candidate,
     Criteria as Criteria,
     Detection as Detection,
+    Errors as Errors,
     Identification as Identification,
+    JointArmatureEffect as JointArmatureEffect,
+    JointCoulombEffect as JointCoulombEffect,
+    JointDampingEffect as JointDampingEffect,
+    JointQuadraticDampingEffect as JointQuadraticDampingEffect,
+    JointSpringEffect as JointSpringEffect,
+    KeypointDragEffect as KeypointDragEffect,
+    PointMassEffect as PointMassEffect,
     Smoothing as Smoothing,
     augment as augment,
     identify as identify,
@@ -71,11 +96,6 @@ from ._input import (
     MLPInput as MLPInput,
 )
 from ._integrate import (
-    RATTLE as RATTLE,
-    RK4 as RK4,
-    AbstractStabilisation as AbstractStabilisation,
-    Baumgarte as Baumgarte,
-    Projection as Projection,
     Trajectory as Trajectory,
     project_state as project_state,
     simulate as simulate,
@@ -105,16 +125,6 @@ from ._mass import (
     rigid_body_gravity as rigid_body_gravity,
     rigid_body_mass as rigid_body_mass,
 )
-from ._metrics import (
-    Evaluation as Evaluation,
-    evaluate as evaluate,
-    geometric_mean_relative_error as geometric_mean_relative_error,
-    keypoint_error as keypoint_error,
-    range_of_motion as range_of_motion,
-    relative_error as relative_error,
-    rollout_energy as rollout_energy,
-    valid_prediction_time as valid_prediction_time,
-)
 from ._potential import (
     AbstractPotential as AbstractPotential,
     Gravity as Gravity,
@@ -128,6 +138,19 @@ from ._progress import (
     NoProgressMeter as NoProgressMeter,
     TextProgressMeter as TextProgressMeter,
     TqdmProgressMeter as TqdmProgressMeter,
+)
+from ._solver import (
+    RATTLE as RATTLE,
+    RATTLE4 as RATTLE4,
+    RK4 as RK4,
+    DynamicsTerm as DynamicsTerm,
+    ProjectedSolver as ProjectedSolver,
+)
+from ._stabilisation import (
+    AbstractStabilisation as AbstractStabilisation,
+    Baumgarte as Baumgarte,
+    NoStabilisation as NoStabilisation,
+    Projection as Projection,
 )
 from ._system import (
     AbstractDynamics as AbstractDynamics,

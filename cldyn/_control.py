@@ -6,7 +6,8 @@ Every control is a final Equinox module with the one signature `u = control(t, x
 - `TimeVaryingControl`: a function of time `u(t)`;
 - `FeedbackControl`: a policy `u(t, x, xd)`;
 - `ZeroOrderHold`: sampled controls, each held until the next sample (recorded data);
-- `EnergyShaping`: the passivity-based controller of eq. 32.
+- `EnergyShaping`: the passivity-based controller of eq. 32, with its damping injection chosen by
+  `KeypointDampingInjection` or `OutputDampingInjection`.
 """
 
 import abc
@@ -37,6 +38,18 @@ class AbstractControl(eqx.Module):
     @abc.abstractmethod
     def __call__(self, t: Float[ArrayLike, ""], x: Vector, xd: Vector) -> Control:
         """The controls at time `t` in state `(x, xd)`, shape `(l,)`."""
+
+    def over_step(self, t0: Float[ArrayLike, ""], t1: Float[ArrayLike, ""]) -> "AbstractControl":
+        """The control as one solver step from `t0` to `t1` applies it; the control itself unless it
+        jumps. A held control (`ZeroOrderHold`) holds the sample of the step's interior over the whole
+        step, so that a last stage evaluated at `t1` does not read the next sample."""
+        del t0, t1
+        return self
+
+    def breakpoints(self) -> np.ndarray | None:
+        """The times at which the control jumps, which no solver step should straddle (`None`: the
+        control does not jump)."""
+        return None
 
 
 class ConstantControl(AbstractControl):
@@ -138,6 +151,15 @@ class ZeroOrderHold(AbstractControl):
         index = jnp.floor(position + 1e-6 * jnp.maximum(1.0, jnp.abs(position))).astype(int)
         return self.values[jnp.clip(index, 0, self.values.shape[0] - 1)]
 
+    def over_step(self, t0, t1) -> AbstractControl:
+        # the sample held at the middle of the step, for every stage of it (MuJoCo holds `ctrl` over
+        # the whole step); steps end on the sample times (`breakpoints`), so none straddles two
+        middle = 0.5 * (t0 + t1)
+        return ConstantControl(self(middle, None, None))
+
+    def breakpoints(self) -> np.ndarray:
+        return self.t0 + self.dt * np.arange(1, self.values.shape[0])
+
 
 def as_control(control, num_inputs: int) -> AbstractControl | None:
     """Normalise what users pass as `control=`: `None`, an `AbstractControl`, a constant `(l,)`
@@ -175,6 +197,68 @@ def check_control_shape(control: AbstractControl | None, num_inputs: int, t, x, 
         raise ValueError(f"control must return shape ({num_inputs},), got {shape}")
 
 
+class AbstractDampingInjection(eqx.Module):
+    """How `EnergyShaping` injects damping: the part of eq. 32 that removes energy."""
+
+    @abc.abstractmethod
+    def __call__(
+        self,
+        match: Callable[[Vector], Control],
+        force: Vector,
+        g: Float[Array, "k l"],
+        xd: Vector,
+        kd: Float[Array, ""],
+    ) -> Control:
+        """The controls from the shaped keypoint force `force`, with damping of gain `kd` injected.
+
+        `match(f)` gives the controls whose input force best matches a keypoint force `f`, $(g^T
+        g)^{-1} g^T f$; `g` is the input matrix at the state and `xd` the velocity.
+        """
+
+
+class KeypointDampingInjection(AbstractDampingInjection):
+    """Damping matched as a keypoint force: $u = (g^T g)^{-1} g^T [f - k_d \\dot x]$.
+
+    The keypoint damping force `-k_d xd` goes through the same match as the shaped force, so `k_d` is
+    a damping coefficient in N s/m whatever the scale of `g` (a gear, or a learned `g`'s arbitrary
+    scale). Passive. The default of `EnergyShaping`.
+
+    !!! example
+
+        ```python
+        controller = cldyn.EnergyShaping(system, upright, kp=5.0, kd=2.0,
+                                         damping=cldyn.KeypointDampingInjection())
+        ```
+    """
+
+    def __call__(self, match, force, g, xd, kd) -> Control:
+        del g
+        return match(force - kd * xd)
+
+
+class OutputDampingInjection(AbstractDampingInjection):
+    """Damping on the passive output as eq. 32 prints it: $u = (g^T g)^{-1} g^T f - k_d g^T \\dot x$.
+
+    Passive, but the damping grows with the square of the actuators' gears (and of a learned `g`'s
+    scale): with MuJoCo's KeyCLD scenes (gear 2) the paper's `k_d = 2` makes the swing-up so
+    overdamped that it takes far longer than 10 s.
+
+    !!! example
+
+        ```python
+        controller = cldyn.EnergyShaping(system, upright, kp=5.0, kd=2.0,
+                                         damping=cldyn.OutputDampingInjection())
+        ```
+    """
+
+    def __call__(self, match, force, g, xd, kd) -> Control:
+        return match(force) - kd * (g.T @ xd)
+
+
+# the shorthands `EnergyShaping(damping=...)` accepts
+_DAMPING_INJECTIONS = {"keypoint": KeypointDampingInjection(), "output": OutputDampingInjection()}
+
+
 class EnergyShaping(AbstractControl):
     """Passivity-based energy-shaping controller (eq. 32).
 
@@ -195,12 +279,11 @@ class EnergyShaping(AbstractControl):
     - `kd`: the damping injection gain (the paper uses 2).
     - `limit`: optional bound on `|u|` per input (actuator saturation).
     - `project`: match in the constraint tangent space (see above); `False` for the literal eq. 32.
-    - `damping`: `"keypoint"` (default) matches the keypoint damping force `-k_d xd` through the same
-      `(g^T g)^-1 g^T` as the shaped force, so that `k_d` is a damping coefficient in N s/m whatever the
-      scale of `g`; `"output"` injects `-k_d g^T xd` on the passive output as eq. 32 prints it. Both are
-      passive. With the output form the damping grows with the square of the actuators' gears (and of
-      a learned `g`'s arbitrary scale): with MuJoCo's KeyCLD scenes (gear 2) the paper's `k_d = 2` makes
-      the swing-up so overdamped that it takes far longer than 10 s.
+    - `damping`: how damping is injected: `KeypointDampingInjection()` (default) matches the keypoint
+      damping force `-k_d xd` through the same `(g^T g)^-1 g^T` as the shaped force, so that `k_d` is a
+      damping coefficient in N s/m whatever the scale of `g`; `OutputDampingInjection()` injects
+      `-k_d g^T xd` on the passive output as eq. 32 prints it. The strings `"keypoint"` and `"output"`
+      are shorthands for them.
 
     Call it as a feedback policy `u = controller(t, x, xd)`, e.g. `cldyn.simulate(...,
     control=controller)`.
@@ -221,7 +304,7 @@ class EnergyShaping(AbstractControl):
     kd: Float[Array, ""]
     limit: float | None = eqx.field(static=True)
     project: bool = eqx.field(static=True)
-    damping: str = eqx.field(static=True)
+    damping: AbstractDampingInjection
     depends_on_state = True
 
     def __init__(
@@ -233,7 +316,7 @@ class EnergyShaping(AbstractControl):
         *,
         limit: float | None = None,
         project: bool = True,
-        damping: str = "keypoint",
+        damping: AbstractDampingInjection | str = KeypointDampingInjection(),
     ):
         if not isinstance(system, ConstrainedLagrangian):
             raise TypeError(f"system must be a ConstrainedLagrangian, got {type(system).__name__}")
@@ -247,8 +330,12 @@ class EnergyShaping(AbstractControl):
             raise ValueError(f"limit must be positive, got {limit}")
         self.limit = limit
         self.project = project
-        if damping not in ("output", "keypoint"):
-            raise ValueError(f"damping must be 'output' or 'keypoint', got {damping!r}")
+        if isinstance(damping, str):
+            if damping not in _DAMPING_INJECTIONS:
+                raise ValueError(f"damping must be 'output' or 'keypoint', got {damping!r}")
+            damping = _DAMPING_INJECTIONS[damping]
+        if not isinstance(damping, AbstractDampingInjection):
+            raise TypeError(f"damping must be an AbstractDampingInjection, got {type(damping).__name__}")
         self.damping = damping
 
     def shaped_potential(self, x: Vector) -> Float[Array, ""]:
@@ -270,12 +357,8 @@ class EnergyShaping(AbstractControl):
             self.system.potential.gradient(x) if self.system.potential is not None else jnp.zeros_like(x)
         )
         force = grad_v - self.kp * (x - self.x_target)
-        if self.damping == "keypoint":
-            force = force - self.kd * xd
         gram = lx.MatrixLinearOperator(g.T @ g, lx.positive_semidefinite_tag)
-        u = lx.linear_solve(gram, g.T @ force, SmallDense()).value
-        if self.damping == "output":
-            u = u - self.kd * (g.T @ xd)
+        u = self.damping(lambda f: lx.linear_solve(gram, g.T @ f, SmallDense()).value, force, g, xd, self.kd)
         if self.limit is not None:
             u = jnp.clip(u, -self.limit, self.limit)
         return u

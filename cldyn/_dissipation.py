@@ -81,6 +81,38 @@ class JointDamping(AbstractDissipation):
         return -grads @ (self.damping * rates)
 
 
+class JointQuadraticDamping(AbstractDissipation):
+    """Quadratic (aerodynamic) joint damping: joint force `-c_j |qd_j| qd_j`, i.e.
+    $F = -\\sum_j c_j \\nabla q_j\\, |\\dot q_j| \\dot q_j$ with $\\dot q_j = \\nabla q_j \\cdot \\dot x$.
+
+    The drag of a paddle or a propeller turning with the joint: the resisting torque grows with the
+    square of the speed. MuJoCo has no joint attribute for it.
+
+    **Arguments:**
+
+    - `coordinates`: the damped joint coordinates.
+    - `damping`: `c_j` for each (N m s^2/rad^2 or N s^2/m^2), shape `(len(coordinates),)` or a
+      scalar; learnable.
+
+    !!! example
+
+        ```python
+        drag = cldyn.JointQuadraticDamping([cldyn.HingeAngle(child=(None, 0))], 0.02)
+        system = cldyn.ConstrainedLagrangian(mass, potential, constraint, dissipation=drag)
+        ```
+    """
+
+    coordinates: tuple[AbstractCoordinate, ...]
+    damping: Float[Array, " p"]
+
+    def __init__(self, coordinates: Sequence[AbstractCoordinate], damping: ArrayInput):
+        self.coordinates, self.damping = _joint_arrays(coordinates, damping, "damping")
+
+    def __call__(self, x: Vector, xd: Vector) -> Vector:
+        grads, rates = _joint_rates(self.coordinates, x, xd)
+        return -grads @ (self.damping * jnp.abs(rates) * rates)
+
+
 class JointCoulomb(AbstractDissipation):
     """Smoothed Coulomb friction on joints: joint force `-f_j tanh(qd_j / v_s)`.
 

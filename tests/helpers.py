@@ -231,7 +231,8 @@ def simulate_reference(reference, q0, qd0, u, dt, samples, *, substeps=20, force
             k2 = rate(jax.tree.map(lambda s, k: s + 0.5 * h * k, state, k1), control)
             k3 = rate(jax.tree.map(lambda s, k: s + 0.5 * h * k, state, k2), control)
             k4 = rate(jax.tree.map(lambda s, k: s + h * k, state, k3), control)
-            new = jax.tree.map(lambda s, a, b, c, d: s + h / 6 * (a + 2 * b + 2 * c + d), state, k1, k2, k3, k4)
+            combine = lambda s, a, b, c, d: s + h / 6 * (a + 2 * b + 2 * c + d)
+            new = jax.tree.map(combine, state, k1, k2, k3, k4)
             return new, None
 
         new, _ = jax.lax.scan(substep, state, None, length=substeps)

@@ -47,11 +47,6 @@ def test_rollout_of_a_constant_force_is_a_parabola():
     assert run.result == dfx.RESULTS.successful
 
 
-@pytest.mark.xfail(
-    strict=True,
-    reason="simulate evaluates RK4's last stage at the step's end, where ZeroOrderHold already holds "
-    "the next sample (see /work/plan/notes_H2a.md, for H1)",
-)
 @pytest.mark.parametrize("substeps", [1, 3])
 def test_rollout_holds_each_control_over_its_interval(substeps):
     mass, h = 2.0, 0.1
@@ -59,6 +54,28 @@ def test_rollout_holds_each_control_over_its_interval(substeps):
     x0, v0 = np.array([0.3, -0.1]), np.array([0.5, 0.2])
     run = cldyn.rollout(_free_point_mass(mass), x0, v0, controls, h, dt0=h / substeps)
     np.testing.assert_allclose(run.x, _held_motion(x0, v0, controls, mass, h), rtol=0, atol=PARABOLA_ATOL)
+
+
+@pytest.mark.parametrize(
+    "solver, dt0",
+    [(cldyn.RK4(), 0.03), (dfx.Tsit5(), None), (cldyn.RATTLE(), 0.07)],
+    ids=["rk4-unaligned-steps", "tsit5-adaptive", "rattle-unaligned-steps"],
+)
+def test_simulate_holds_each_sample_whatever_the_steps(solver, dt0):
+    # steps that do not line up with the samples (or adaptive ones) still hold each sample over its
+    # own interval: simulate steps onto the jumps of the hold
+    mass, h = 2.0, 0.1
+    controls = np.array([[1.0, -2.0], [3.0, 0.5], [-1.0, 1.0], [0.0, 4.0], [2.0, 2.0]])
+    x0, v0 = np.array([0.3, -0.1]), np.array([0.5, 0.2])
+    ts = np.linspace(0.0, 0.4, 9)  # saves between the samples too
+    hold = cldyn.ZeroOrderHold(jnp.asarray(controls), dt=h)
+    stabilisation = None if isinstance(solver, cldyn.RATTLE) else cldyn.Projection()
+    traj = cldyn.simulate(
+        _free_point_mass(mass), x0, v0, ts, control=hold, solver=solver, dt0=dt0, stabilisation=stabilisation
+    )
+    fine = np.repeat(controls, 2, axis=0)[:-1]  # each sample held over two half intervals
+    exact = _held_motion(x0, v0, fine, mass, h / 2)
+    np.testing.assert_allclose(traj.x, exact, rtol=0, atol=1e-9)
 
 
 def test_rollout_of_a_small_angle_pendulum_is_harmonic():

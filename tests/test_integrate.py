@@ -36,7 +36,7 @@ def _final_error(system, x0, xd0, solver, dts, horizon, stabilisation):
 
 @pytest.mark.parametrize(
     "solver, stabilisation, order",
-    [(cldyn.RK4(), cldyn.Projection(), 4), (cldyn.RATTLE(), None, 2), (cldyn.RATTLE(order=4), None, 4)],
+    [(cldyn.RK4(), cldyn.Projection(), 4), (cldyn.RATTLE(), None, 2), (cldyn.RATTLE4(), None, 4)],
     ids=["rk4-projection", "rattle", "rattle-order4"],
 )
 def test_convergence_order(acrobot, solver, stabilisation, order):
@@ -237,8 +237,8 @@ def test_rk4_takes_fixed_steps_without_dt0():
     # are refused rather than silently driving a step-size controller with a zero error estimate
     system, joints = cldyn.systems.acrobot()
     x0, xd0 = joints.to_keypoints(jnp.array([2.5, 0.3]), jnp.array([1.0, 0.2]))
-    fine = cldyn.simulate(system, x0, xd0, jnp.arange(101) * 0.005, solver=cldyn.RK4(), stabilisation=None)
-    coarse = cldyn.simulate(system, x0, xd0, jnp.arange(51) * 0.01, solver=cldyn.RK4(), stabilisation=None)
+    fine = cldyn.simulate(system, x0, xd0, jnp.arange(101.0) * 0.005, solver=cldyn.RK4(), stabilisation=None)
+    coarse = cldyn.simulate(system, x0, xd0, jnp.arange(51.0) * 0.01, solver=cldyn.RK4(), stabilisation=None)
     phi = jax.vmap(system.constraint)(fine.x) - system.constraint(x0)[None, :]
     assert float(jnp.max(jnp.abs(phi))) < 1e-6
     assert float(jnp.max(jnp.abs(fine.x[::2] - coarse.x))) < 1e-5

@@ -82,7 +82,7 @@ def test_cli_fit_resume_and_load(tmp_path, capsys, monkeypatch):
     assert summary["steps"] == 10 and summary["validation"] is not None
     model, spec = cldyn.load_fit(out)
     assert isinstance(model, cldyn.ConstrainedLagrangian) and spec["model"]["constraint"] == "pendulum"
-    assert json.loads((out / "history.json").read_text())[-1]["step"] == 10
+    assert json.loads((out / "history.json").read_text())["records"][-1]["step"] == 10
     x = np.zeros((3, 8, 2)) + np.linspace(0, 0.1, 8)[None, :, None]
     data = cldyn.Sequences(x, np.zeros((3, 1)), 0.02)
     path = data.save(tmp_path / "runs.npz")

@@ -10,6 +10,7 @@ import argparse
 import time
 
 from ._common import add_command, enable_float64, output_directory, positive, seed
+from ._identify import narrative
 
 SCENE = "acrobot"
 
@@ -57,6 +58,7 @@ def run(args: argparse.Namespace) -> int:
     data.save(out / "measured.npz", overwrite=True)
     print(f"[2/3] identifying what the nominal model of {SCENE!r} is missing")
     result = identify_recording(data, SCENE, seed=args.seed, progress_meter=cldyn.TqdmProgressMeter())
+    print(narrative(result, data.num_samples))
     print("[3/3] report")
     report = result.save(out / "identify")
     print(result.summary())

@@ -53,14 +53,34 @@ def register(subparsers) -> None:
     parser.set_defaults(run=run)
 
 
+def narrative(result, samples: int) -> str:
+    """What the identification did, round by round, as `cldyn identify` has always printed it.
+
+    `samples` is the length of each run as measured (the settings record the smoothing window, whose
+    ends the residual leaves out)."""
+    settings = result.settings
+    runs, held = settings["runs"], len(settings["held_out_runs"])
+    used = samples - (settings["smoothing"]["window"] - 1)
+
+    def errors(name, e):
+        return f"  {name}: accel_rmse {e.accel_rmse:.4g} m/s^2, rollout_rmse_1s {e.rollout_rmse_1s:.4g} m"
+
+    lines = [f"identify: {runs} runs ({runs - held} fit, {held} held out), {used} samples each"]
+    lines.append(errors("before", result.before))
+    lines += [f"  round {r.round}: " + ("; ".join(r.detected) or "nothing passes") for r in result.rounds]
+    lines.append(errors("after", result.after))
+    return "\n".join(lines)
+
+
 def run(args: argparse.Namespace) -> int:
     """Identify, save the report, print its summary."""
-    data = input_file(args.data, "--data")
+    path = input_file(args.data, "--data")
     out = output_directory(args.out)
     enable_float64()
     import cldyn
     from cldyn.mujoco import identify_recording
 
+    data = cldyn.Sequences.load(path)
     result = identify_recording(
         data,
         args.model,
@@ -76,6 +96,7 @@ def run(args: argparse.Namespace) -> int:
         progress_meter=cldyn.TqdmProgressMeter(),
     )
     report = result.save(out)
+    print(narrative(result, data.num_samples))
     print(result.summary())
     print(f"wrote {report / 'report.json'}, {report / 'report.md'} and plots")
     return 0

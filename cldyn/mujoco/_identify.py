@@ -1,16 +1,13 @@
 """Identification against MuJoCo: recordings in, reports out; and scenes with injected effects."""
 
-import argparse
+import dataclasses
 import os
-import pathlib
 import xml.etree.ElementTree as ET
 from collections.abc import Mapping
 
-import jax
-
-from .._identify import EFFECTS, Criteria, Identification, Smoothing, identify
+from .._data import Sequences
+from .._identify import Identification, identify
 from ._bridge import from_mjcf
-from ._record import Recording
 from ._scenes import scene_xml
 
 _JOINT_ATTRIBUTES = ("damping", "frictionloss", "stiffness", "springref", "armature")
@@ -82,7 +79,7 @@ def _gear(value) -> str:
 
 
 def identify_recording(
-    data: "Recording | str | os.PathLike",
+    data: "Sequences | str | os.PathLike",
     nominal: "str | os.PathLike",
     **kwargs,
 ) -> Identification:
@@ -90,113 +87,66 @@ def identify_recording(
 
     The nominal model is built from `nominal` with the recording's keypoints (by name), so the
     recording and the model agree on what each coordinate is; joint effects are named by the MJCF's
-    joints, gain errors by its actuators, keypoint effects by the keypoints. Runs in float64.
+    joints, gain errors by its actuators, keypoint effects by the keypoints (the names come from
+    `data.info`). Runs in the precision JAX is set to: turn on JAX's 64-bit mode first, as the
+    command line does (in float32 the result carries a warning).
 
     **Arguments:**
 
-    - `data`: a `Recording`, or the path of one saved by `cldyn record`.
+    - `data`: a `cldyn.Sequences` as `cldyn.mujoco.record` returns it, or the path of one saved by
+      `cldyn record`.
     - `nominal`: the nominal MJCF (path, XML string, suite name or `"keycld/<name>"`): the model
       without the effect to be found.
-    - `kwargs`: passed on to `cldyn.identify` (`effects`, `smoothing`, `criteria`, `bootstrap`, ...).
+    - `kwargs`: passed on to `cldyn.identify` (`effects`, `smoothing`, `criteria`, `bootstrap`,
+      `progress_meter`, ...).
 
     **Returns:** an `Identification`; `.save(dir)` writes `report.json`, `report.md` and plots.
+
+    !!! example
+
+        ```python
+        scene = cldyn.mujoco.modify_scene("keycld/pendulum", joints={"hinge": {"damping": 0.1}})
+        data = cldyn.mujoco.record(scene, runs=20, duration=3.0, dt=0.01)
+        result = cldyn.mujoco.identify_recording(data, "keycld/pendulum")
+        ```
     """
-    jax.config.update("jax_enable_x64", True)
-    if not isinstance(data, Recording):
-        data = Recording.load(data)
+    if not isinstance(data, Sequences):
+        data = Sequences.load(data)
+    info = data.info
+    missing = [key for key in ("keypoint_names", "joint_names", "actuator_names") if key not in info]
+    if missing:
+        raise ValueError(f"the data's info lacks {missing}: record it with cldyn.mujoco.record")
+    keypoint_names = tuple(info["keypoint_names"])
     bridge = from_mjcf(nominal)
-    if bridge.keypoint_names != data.keypoint_names:
+    if bridge.keypoint_names != keypoint_names:
         try:
-            bridge = from_mjcf(nominal, keypoints=data.keypoint_names)
+            bridge = from_mjcf(nominal, keypoints=keypoint_names)
         except ValueError as error:
             raise ValueError(
-                f"the recording's keypoints {list(data.keypoint_names)} are not keypoints of the nominal "
+                f"the recording's keypoints {list(keypoint_names)} are not keypoints of the nominal "
                 f"model (its defaults are {list(bridge.keypoint_names)}): {error}"
             ) from error
-    if bridge.joint_names != data.joint_names:
-        raise ValueError(
-            f"the recording's joints {list(data.joint_names)} differ from the nominal model's "
-            f"{list(bridge.joint_names)}"
-        )
-    if bridge.actuator_names != data.actuator_names:
-        raise ValueError(
-            f"the recording's actuators {list(data.actuator_names)} differ from the nominal model's "
-            f"{list(bridge.actuator_names)}"
-        )
+    for kind in ("joint", "actuator"):
+        recorded, nominal_names = tuple(info[f"{kind}_names"]), getattr(bridge, f"{kind}_names")
+        if recorded != tuple(nominal_names):
+            raise ValueError(
+                f"the recording's {kind}s {list(recorded)} differ from the nominal model's "
+                f"{list(nominal_names)}"
+            )
     result = identify(
         bridge.system,
-        data.x,
-        data.u,
-        data.dt,
+        data,
         joint_coordinates=dict(zip(bridge.joint_names, bridge.joint_coordinates)),
         joints=bridge.joints,
         actuator_names=bridge.actuator_names,
         keypoint_names=bridge.keypoint_names,
         **kwargs,
     )
-    result.settings.update(
-        data=str(data.mjcf),
+    settings = dict(
+        result.settings,
+        data=str(info.get("mjcf")),
         nominal=str(nominal) if not str(nominal).lstrip().startswith("<") else "<xml>",
-        noise=data.noise,
-        record_seed=data.seed,
+        noise=info.get("noise"),
+        record_seed=info.get("seed"),
     )
-    return result
-
-
-# -- command line -------------------------------------------------------------------------------
-
-
-def _identify_command(args: argparse.Namespace) -> int:
-    smoothing = Smoothing(
-        window=args.window, order=args.order, test_width=args.test_width, test_stride=args.test_stride
-    )
-    result = identify_recording(
-        args.data,
-        args.model,
-        effects=tuple(args.effects),
-        smoothing=smoothing,
-        criteria=Criteria(),
-        bootstrap=args.bootstrap,
-        holdout=args.holdout,
-        max_rounds=args.max_rounds,
-        seed=args.seed,
-        progress=True,
-    )
-    out = result.save(args.out)
-    print(result.summary())
-    print(f"wrote {out / 'report.json'}, {out / 'report.md'} and plots")
-    return 0
-
-
-def register(subparsers) -> None:
-    """Add `cldyn identify`."""
-    parser = subparsers.add_parser(
-        "identify",
-        help="find the physics a nominal MJCF model is missing in recorded data",
-        description=(
-            "Compute the residual of the nominal model on recorded data, attribute it to effects of the "
-            "library (damping, Coulomb friction, springs, armature, actuator gain, drag, point masses), "
-            "add them, refit, and report the error before and after."
-        ),
-    )
-    parser.add_argument("--data", required=True, help="a recording saved by `cldyn record` (.npz)")
-    parser.add_argument("--model", required=True, help="the nominal MJCF (file, suite name or keycld/<name>)")
-    parser.add_argument(
-        "--out", required=True, type=pathlib.Path, help="directory for report.json/md and plots"
-    )
-    parser.add_argument(
-        "--effects", nargs="+", default=list(EFFECTS), choices=EFFECTS, help="effects to consider"
-    )
-    parser.add_argument("--bootstrap", type=int, default=100, help="bootstrap replicates (default 100)")
-    parser.add_argument(
-        "--holdout", type=float, default=0.25, help="fraction of runs held out (default 0.25)"
-    )
-    parser.add_argument("--max-rounds", type=int, default=3, help="detect-augment-refit rounds (default 3)")
-    parser.add_argument(
-        "--window", type=int, default=Smoothing.window, help="Savitzky-Golay window (samples)"
-    )
-    parser.add_argument("--order", type=int, default=Smoothing.order, help="Savitzky-Golay polynomial order")
-    parser.add_argument("--test-width", type=int, default=Smoothing.test_width, help="test function width")
-    parser.add_argument("--test-stride", type=int, default=Smoothing.test_stride, help="test function stride")
-    parser.add_argument("--seed", type=int, default=0, help="seed of the split and the bootstrap")
-    parser.set_defaults(run=_identify_command)
+    return dataclasses.replace(result, settings=settings)

@@ -1,0 +1,30 @@
+"""Find the physics a model is missing: residual, attribution, augmentation, report.
+
+The measured motion `x(t)` of a constrained mechanism obeys `M xdd = f(x, xd, u) + DPhi^T lambda + F`,
+where `F` is whatever the model does not contain. Along the constraint manifold, in the joint-space
+basis `G = dx/dq`, `r = G^T (M xdd - f) = G^T F`: a generalised force per joint that the data
+determine. Every candidate effect (one `AbstractEffect` per file here) is a force linear in its
+parameters, so attribution is a sparse, sign-constrained linear regression of `r` on the candidates'
+features, with a bootstrap over whole runs for the uncertainty. Detected effects are added to the model
+as cldyn terms, the model is refitted, and the loop repeats until nothing passes.
+
+Layout: `base` (the effect interface), one module per effect, `library` (the default effects),
+`smoothing`, `residual` (the weak form), `regression`, `refit`, `errors` (before/after), `identify`
+(the loop), `result` and `report`.
+"""
+
+from .actuator_gain import ActuatorGainEffect as ActuatorGainEffect
+from .base import AbstractEffect as AbstractEffect, Candidate as Candidate, Context as Context
+from .identify import identify as identify
+from .joint_armature import JointArmatureEffect as JointArmatureEffect
+from .joint_coulomb import JointCoulombEffect as JointCoulombEffect
+from .joint_damping import JointDampingEffect as JointDampingEffect
+from .joint_quadratic_damping import JointQuadraticDampingEffect as JointQuadraticDampingEffect
+from .joint_spring import JointSpringEffect as JointSpringEffect
+from .keypoint_drag import KeypointDragEffect as KeypointDragEffect
+from .library import EFFECTS as EFFECTS
+from .point_mass import PointMassEffect as PointMassEffect
+from .refit import augment as augment
+from .regression import Criteria as Criteria
+from .result import Detection as Detection, Errors as Errors, Identification as Identification
+from .smoothing import Smoothing as Smoothing

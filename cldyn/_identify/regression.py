@@ -1,0 +1,349 @@
+"""Attribution: sparse, sign-constrained least squares on the weak residual, with forward selection
+by the Bayesian information criterion, equivalence classes and a bootstrap over whole runs."""
+
+import dataclasses
+import itertools
+import math
+from collections.abc import Sequence
+
+import equinox as eqx
+import numpy as np
+
+from .base import Candidate
+from .result import Detection, Round
+
+
+class Criteria(eqx.Module):
+    """When an effect counts as detected: every criterion must hold.
+
+    **Arguments:**
+
+    - `min_bic_gain`: removing the effect from the selected set must raise the Bayesian information
+      criterion by at least this much (10 is "very strong" evidence). The BIC counts one independent
+      sample per smoothing window, since smoothing correlates neighbouring residuals.
+    - `min_t`: |estimate| / bootstrap standard error (the bootstrap resamples whole trajectories).
+    - `min_inclusion`: the fraction of bootstrap replicates whose own selection includes the effect.
+    - `min_holdout_drop`: the relative drop of the held-out residual sum of squares when the effect
+      is added to the others.
+    - `min_share`: the effect's generalised force, RMS, relative to the RMS of the inertial forces
+      `G^T M xdd`: smaller effects do not matter to the motion and are not reported.
+
+    !!! example
+
+        ```python
+        result = cldyn.identify(model, data, joint_coordinates=coordinates,
+                                criteria=cldyn.Criteria(min_bic_gain=20.0))
+        ```
+    """
+
+    min_bic_gain: float = eqx.field(static=True, default=10.0)
+    min_t: float = eqx.field(static=True, default=4.0)
+    min_inclusion: float = eqx.field(static=True, default=0.9)
+    min_holdout_drop: float = eqx.field(static=True, default=0.05)
+    min_share: float = eqx.field(static=True, default=0.003)
+
+    def to_dict(self) -> dict[str, float]:
+        """The criteria by name, for reports."""
+        return {f.name: getattr(self, f.name) for f in dataclasses.fields(self)}
+
+
+# -- least squares on normal equations -----------------------------------------------------------
+
+
+@dataclasses.dataclass(frozen=True)
+class Normal:
+    """Sufficient statistics of weighted least squares: `A = Phi^T Phi`, `b = Phi^T r`, `c = r^T r`,
+    and the number of equations `n`."""
+
+    A: np.ndarray
+    b: np.ndarray
+    c: float
+    n: int
+
+    def __add__(self, other: "Normal") -> "Normal":
+        return Normal(self.A + other.A, self.b + other.b, self.c + other.c, self.n + other.n)
+
+    def rss(self, columns: list[int], theta: np.ndarray) -> float:
+        """The residual sum of squares of `theta` on `columns`."""
+        if not columns:
+            return self.c
+        idx = np.asarray(columns)
+        return float(self.c - 2 * theta @ self.b[idx] + theta @ self.A[np.ix_(idx, idx)] @ theta)
+
+
+def fit(normal: Normal, columns: list[int], signs: list[int]) -> tuple[np.ndarray, float]:
+    """Least squares on `columns` with `theta_i >= 0` where `signs[i] = 1`; returns `(theta, RSS)`."""
+    if not columns:
+        return np.zeros(0), normal.c
+    idx = np.asarray(columns)
+    A = normal.A[np.ix_(idx, idx)]
+    b = normal.b[idx]
+    constrained = [i for i, s in enumerate(signs) if s > 0]
+    best = None
+    # The optimum of a convex QP with bounds has some bounded variables at zero and the rest an
+    # unconstrained optimum: try the active sets in order of size (the problems here are tiny).
+    for size in range(len(constrained) + 1):
+        for active in itertools.combinations(constrained, size):
+            free = [i for i in range(len(idx)) if i not in active]
+            theta = np.zeros(len(idx))
+            if free:
+                sub = A[np.ix_(free, free)]
+                theta[free] = np.linalg.lstsq(sub, b[free], rcond=1e-12)[0]
+            if any(theta[i] < 0 for i in constrained):
+                continue
+            rss = normal.c - 2 * theta @ b + theta @ A @ theta
+            if best is None or rss < best[1] - 1e-12 * abs(normal.c):
+                best = (theta, float(rss))
+        if best is not None:
+            break
+    return best
+
+
+def bic(rss: float, n: int, p: int, correlation: float) -> float:
+    """The Bayesian information criterion of `p` parameters on `n` equations, `correlation` of which
+    make one independent equation."""
+    n_eff = max(n / correlation, 2.0)
+    return n_eff * math.log(max(rss, 1e-300) / n) + p * math.log(n_eff)
+
+
+@dataclasses.dataclass(frozen=True)
+class Groups:
+    """The column layout: candidate `g` owns the columns `columns[g]`; `signs` per column."""
+
+    columns: tuple[tuple[int, ...], ...]
+    signs: tuple[int, ...]
+
+    @classmethod
+    def of(cls, candidates: Sequence[Candidate]) -> "Groups":
+        columns, signs, start = [], [], 0
+        for c in candidates:
+            columns.append(tuple(range(start, start + len(c.columns))))
+            signs += list(c.signs)
+            start += len(c.columns)
+        return cls(tuple(columns), tuple(signs))
+
+    def select(self, chosen: Sequence[int]) -> tuple[list[int], list[int]]:
+        """The columns of the chosen groups and their signs."""
+        columns = [c for g in chosen for c in self.columns[g]]
+        return columns, [self.signs[c] for c in columns]
+
+    def admissible(self, theta: np.ndarray, chosen: Sequence[int]) -> bool:
+        """Whether every sign-constrained coefficient of the chosen groups is positive."""
+        _, signs = self.select(chosen)
+        return not any(s > 0 and t <= 0 for s, t in zip(signs, theta))
+
+
+@dataclasses.dataclass(frozen=True)
+class Selection:
+    """The groups a forward selection chose, with their coefficients, RSS and BIC."""
+
+    groups: tuple[int, ...]
+    theta: np.ndarray
+    rss: float
+    bic: float
+
+
+def forward_select(
+    normal: Normal, groups: Groups, *, correlation: float, min_gain: float, max_groups: int
+) -> Selection:
+    """Add the group that lowers the BIC most, while it lowers it by `min_gain` or more; groups whose
+    admissible fit does not use them are skipped."""
+    chosen: list[int] = []
+    theta, rss = fit(normal, [], [])
+    score = bic(rss, normal.n, 0, correlation)
+    while len(chosen) < max_groups:
+        best = None
+        for g in range(len(groups.columns)):
+            if g in chosen:
+                continue
+            columns, signs = groups.select(chosen + [g])
+            theta_g, rss_g = fit(normal, columns, signs)
+            width = len(groups.columns[g])
+            if any(s > 0 and t <= 0 for s, t in zip(signs[-width:], theta_g[-width:])):
+                continue  # the physically admissible fit does not use this candidate at all
+            bic_g = bic(rss_g, normal.n, len(columns), correlation)
+            if best is None or bic_g < best[2]:
+                best = (g, theta_g, bic_g, rss_g)
+        if best is None or score - best[2] < min_gain:
+            break
+        chosen.append(best[0])
+        theta, score, rss = best[1], best[2], best[3]
+    return Selection(tuple(chosen), theta, rss, score)
+
+
+# -- one round of attribution --------------------------------------------------------------------
+
+
+@dataclasses.dataclass(frozen=True)
+class Problem:
+    """One round's regression: the weak residual and features of the fit and held-out runs.
+
+    **Fields:** `candidates`; `r_fit` `(runs, n, m)`, the residual of the fit runs; `f_fit`
+    `(runs, n, m, C)`, their features; `inertial_fit` `(runs, n, m)`, their inertial forces;
+    `r_held`, `f_held` the same for the held-out runs; `weights` `(m,)`, per joint.
+    """
+
+    candidates: tuple[Candidate, ...]
+    r_fit: np.ndarray
+    f_fit: np.ndarray
+    inertial_fit: np.ndarray
+    r_held: np.ndarray
+    f_held: np.ndarray
+    weights: np.ndarray
+
+
+@dataclasses.dataclass(frozen=True)
+class Attribution:
+    """The outcome of one round: the selected candidates (passed or not, strongest first), the round's
+    summary, and the column layout."""
+
+    selected: tuple[Detection, ...]
+    round: Round
+    groups: Groups
+
+
+def _per_run_normals(problem: Problem, r, f, scale):
+    w = problem.weights[None, None, :, None]
+    fw = f * w / scale[None, None, None, :]
+    rw = r * problem.weights[None, None, :]
+    A = np.einsum("rtmc,rtmd->rcd", fw, fw)
+    b = np.einsum("rtmc,rtm->rc", fw, rw)
+    c = np.einsum("rtm,rtm->r", rw, rw)
+    n = np.full(r.shape[0], r.shape[1] * r.shape[2])
+    return A, b, c, n
+
+
+def attribute(
+    problem: Problem,
+    *,
+    correlation: float,
+    criteria: Criteria,
+    bootstrap: int,
+    max_effects: int,
+    rng: np.random.Generator,
+    round_index: int,
+) -> Attribution:
+    """Selection, equivalence classes, bootstrap and criteria for one round.
+
+    **Arguments:**
+
+    - `problem`: the round's `Problem`.
+    - `correlation`: rows of the weak equations per independent one (`Smoothing.correlation`).
+    - `criteria`: the `Criteria` of a detection.
+    - `bootstrap`: replicates over whole runs; `max_effects`: the most groups selected.
+    - `rng`: for the bootstrap; `round_index`: for the report.
+    """
+    candidates = problem.candidates
+    groups = Groups.of(candidates)
+    w = problem.weights[None, None, :, None]
+    scale = np.sqrt(np.mean((problem.f_fit * w) ** 2, axis=(0, 1, 2)))
+    scale = np.where(scale > 0, scale, 1.0)
+    A_r, b_r, c_r, n_r = _per_run_normals(problem, problem.r_fit, problem.f_fit, scale)
+    total = Normal(A_r.sum(0), b_r.sum(0), float(c_r.sum()), int(n_r.sum()))
+    A_h, b_h, c_h, n_h = _per_run_normals(problem, problem.r_held, problem.f_held, scale)
+    held = Normal(A_h.sum(0), b_h.sum(0), float(c_h.sum()), int(n_h.sum()))
+    gain = criteria.min_bic_gain
+
+    def select(normal):
+        return forward_select(normal, groups, correlation=correlation, min_gain=gain, max_groups=max_effects)
+
+    def fit_set(normal, chosen):
+        columns, signs = groups.select(chosen)
+        theta, rss = fit(normal, columns, signs)
+        return theta, rss, bic(rss, normal.n, len(columns), correlation)
+
+    chosen = list(select(total).groups)
+    # Candidates that explain the data about as well (BIC within `min_bic_gain` when swapped in) cannot
+    # be told apart: shoulder damping and linear drag on the elbow keypoint give the very same joint
+    # torques, for example. They are reported together, represented by the one earliest in the order of
+    # the effects (and of their candidates).
+    classes = []
+    for position in range(len(chosen)):
+        _, _, bic_best = fit_set(total, chosen)
+        members = [chosen[position]]
+        for h in range(len(candidates)):
+            if h in chosen:
+                continue
+            trial = chosen[:position] + [h] + chosen[position + 1 :]
+            theta_h, _, bic_h = fit_set(total, trial)
+            if groups.admissible(theta_h, trial) and bic_h - bic_best < gain:
+                members.append(h)
+        chosen[position] = min(members)
+        classes.append(set(members))
+    theta_all, _, bic_all = fit_set(total, chosen)
+
+    # bootstrap over whole runs: inclusion counts a class when any of its members is selected
+    runs = A_r.shape[0]
+    inclusion = np.zeros(len(chosen))
+    draws = []
+    for _ in range(bootstrap):
+        counts = np.bincount(rng.integers(0, runs, runs), minlength=runs).astype(float)
+        normal = Normal(
+            np.einsum("r,rcd->cd", counts, A_r), counts @ b_r, float(counts @ c_r), int(counts @ n_r)
+        )
+        picked = set(select(normal).groups)
+        inclusion += [bool(picked & members) for members in classes]
+        if chosen:
+            draws.append(fit_set(normal, chosen)[0])
+    inclusion /= max(bootstrap, 1)
+    draws = np.array(draws)
+
+    selected = []
+    offset = 0
+    for position, g in enumerate(chosen):
+        c = candidates[g]
+        own = list(groups.columns[g])
+        width = len(own)
+        theta = theta_all[offset : offset + width] / scale[own]
+        samples = draws[:, offset : offset + width] / scale[own][None, :] if len(draws) else None
+        offset += width
+        others = [h for h in chosen if h != g]
+        theta_without, _, bic_without = fit_set(total, others)
+        rss_held_with = held.rss(groups.select(chosen)[0], theta_all)
+        rss_held_without = held.rss(groups.select(others)[0], theta_without)
+        holdout_drop = 1.0 - rss_held_with / rss_held_without if rss_held_without > 0 else 0.0
+        sd = float(np.std(samples[:, 0])) if samples is not None and len(samples) > 1 else float("inf")
+        t_stat = abs(theta[0]) / sd if sd > 0 else float("inf")
+        effect_force = np.einsum("rtmc,c->rtm", problem.f_fit[..., own], theta)
+        inertial = max(np.sqrt(np.mean(problem.inertial_fit**2)), 1e-300)
+        share = float(np.sqrt(np.mean(effect_force**2)) / inertial)
+        main = c.parameters(theta)
+        values = np.array([c.parameters(v)["value"] for v in samples]) if samples is not None else None
+        lo, hi = (
+            (float(np.percentile(values, 2.5)), float(np.percentile(values, 97.5)))
+            if values is not None and len(values)
+            else (float("nan"), float("nan"))
+        )
+        ok = (
+            bic_without - bic_all >= gain
+            and t_stat >= criteria.min_t
+            and inclusion[position] >= criteria.min_inclusion
+            and holdout_drop >= criteria.min_holdout_drop
+            and share >= criteria.min_share
+        )
+        selected.append(
+            Detection(
+                candidate=c,
+                value=main["value"],
+                ci=(lo, hi),
+                parameters=main,
+                bic_gain=float(bic_without - bic_all),
+                t=float(t_stat),
+                inclusion=float(inclusion[position]),
+                holdout_drop=float(holdout_drop),
+                share=share,
+                alternatives=tuple(sorted(candidates[h].label for h in classes[position] if h != g)),
+                round=round_index,
+                detected=bool(ok),
+                theta=theta,
+            )
+        )
+    selected.sort(key=lambda d: -d.bic_gain)
+    summary = Round(
+        round=round_index,
+        candidates=len(candidates),
+        selected=tuple(d.candidate.label for d in selected),
+        detected=tuple(d.candidate.label for d in selected if d.detected),
+        inclusion={d.candidate.label: d.inclusion for d in selected},
+    )
+    return Attribution(tuple(selected), summary, groups)
