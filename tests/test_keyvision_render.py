@@ -1,0 +1,209 @@
+"""Rendering datasets with MuJoCo: the camera map against rendered pixels, the protocol, the cache."""
+
+import dataclasses
+import os
+
+import numpy as np
+import pytest
+
+pytest.importorskip("mujoco")
+
+import keyvision
+import keyvision._render as render_module
+
+pytestmark = pytest.mark.mujoco
+
+PIXEL_TOL = 0.35  # pixels: a rendered sphere's centroid against the projection of its centre
+EXACT = 1e-9
+ARM = 0.4  # the marker scene's arm length
+PIVOT_HEIGHT = 0.3
+CAMERA = [0.5, -2.2, 1.0]
+
+
+def _look_at(position, target, roll):
+    z = np.asarray(position, float) - target
+    z /= np.linalg.norm(z)
+    x = np.cross([0.0, 0.0, 1.0], z)
+    x /= np.linalg.norm(x)
+    y = np.cross(z, x)
+    x, y = np.cos(roll) * x + np.sin(roll) * y, -np.sin(roll) * x + np.cos(roll) * y
+    return " ".join(f"{v:.12f}" for v in (*x, *y))
+
+
+# A white, unlit sphere on an arm (hinge) that rides a carriage (slide), on black, seen by a camera
+# that looks at the plane obliquely and rolled: the pixel-to-plane map is then truly projective.
+MARKER_SCENE = f"""
+<mujoco model="marker">
+  <visual><headlight ambient="0 0 0" diffuse="0 0 0" specular="0 0 0"/></visual>
+  <asset><material name="glow" rgba="1 1 1 1" emission="1"/></asset>
+  <option timestep="0.01" integrator="RK4"/>
+  <worldbody>
+    <camera name="oblique" pos="0.5 -2.2 1.0" xyaxes="{_look_at(CAMERA, [0, 0, PIVOT_HEIGHT], 0.3)}"/>
+    <camera name="follow" mode="trackcom" pos="0 -2 0.3"/>
+    <body name="carriage" pos="0 0 {PIVOT_HEIGHT}">
+      <joint name="slide" type="slide" axis="1 0 0"/>
+      <geom type="sphere" size="0.02" mass="1" group="3"/>
+      <body name="arm">
+        <joint name="hinge" type="hinge" axis="0 1 0"/>
+        <geom type="sphere" pos="0 0 {ARM}" size="0.035" material="glow" mass="0.5"/>
+        <site name="marker" pos="0 0 {ARM}" size="0.01" group="5"/>
+      </body>
+    </body>
+  </worldbody>
+  <actuator><motor joint="slide"/><motor joint="hinge"/></actuator>
+</mujoco>
+"""
+SMALL = keyvision.RenderProtocol(runs=3, frames=4, validation_runs=1, slide_limit=0.3)
+
+
+@pytest.fixture(scope="module")
+def marker_frames():
+    return keyvision.render(
+        MARKER_SCENE, camera="oblique", protocol=SMALL, keypoints=["marker"], cache=False, workers=1
+    )
+
+
+def test_keypoints_follow_the_joints_in_closed_form(marker_frames):
+    """Rotation about +y by q carries (0, 0, L) to (L sin q, 0, L cos q); the plane is world (x, z)."""
+    slide, angle = marker_frames.extras["qpos"][..., 0], marker_frames.extras["qpos"][..., 1]
+    expected = np.stack([slide + ARM * np.sin(angle), PIVOT_HEIGHT + ARM * np.cos(angle)], axis=-1)
+    np.testing.assert_allclose(marker_frames.extras["keypoints"], expected, atol=EXACT)
+    np.testing.assert_allclose(marker_frames.camera.basis, [[1, 0, 0], [0, 0, 1]], atol=EXACT)
+
+
+def test_camera_map_projects_the_rendered_marker(marker_frames):
+    """The centroid of the rendered sphere lies where the camera map sends its centre."""
+    size = SMALL.image_size
+    expected = marker_frames.camera.to_image(marker_frames.extras["keypoints"])  # (R, T, 2)
+    light = marker_frames.frames.astype(float).mean(axis=-1)  # (R, T, H, W), black background
+    rows, cols = np.meshgrid(np.arange(size), np.arange(size), indexing="ij")
+    weight = light.sum(axis=(-2, -1))
+    assert np.all(weight > 0)
+    centroid = np.stack([(light * rows).sum((-2, -1)) / weight, (light * cols).sum((-2, -1)) / weight], -1)
+    expected_pixels = np.asarray(keyvision.frame_to_pixel(expected, size, size))
+    np.testing.assert_allclose(centroid, expected_pixels, atol=PIXEL_TOL)
+    homography = marker_frames.camera.homography
+    assert abs(homography[2, 0]) + abs(homography[2, 1]) > 1e-3  # the oblique view is not affine
+
+
+def test_rendering_does_not_depend_on_the_number_of_workers(marker_frames):
+    again = keyvision.render(
+        MARKER_SCENE, camera="oblique", protocol=SMALL, keypoints=["marker"], cache=False, workers=2
+    )
+    np.testing.assert_array_equal(again.frames, marker_frames.frames)
+    np.testing.assert_array_equal(again.extras["qpos"], marker_frames.extras["qpos"])
+    np.testing.assert_array_equal(again.u, marker_frames.u)
+
+
+def test_keycld_pendulum_follows_the_papers_protocol():
+    """A.6: dt 0.02 s with (semi-implicit) Euler, one step per frame; the pivot at the image centre;
+    one constant control per run in U(-2, 2), zero in 20% of runs; velocities U(-0.1, 0.1)."""
+    protocol = keyvision.RenderProtocol(runs=10, frames=3, validation_runs=2)
+    frames = keyvision.render("keycld/pendulum", protocol=protocol, cache=False, workers=1)
+    assert frames.frames.shape == (10, 3, 64, 64, 3)
+    assert frames.dt == 0.02 and frames.info["integrator"] == "EULER"
+    qpos, qvel = frames.extras["qpos"][..., 0], frames.extras["qvel"][..., 0]
+    np.testing.assert_allclose(qpos[:, 1:] - qpos[:, :-1], 0.02 * qvel[:, 1:], atol=EXACT)
+    assert np.all(np.abs(qvel[:, 0]) <= 0.1) and np.all(np.abs(qpos[:, 0]) <= np.pi)
+    tip = np.stack([0.5 * np.sin(qpos), 0.6 + 0.5 * np.cos(qpos)], axis=-1)  # pole 0.5 m, pivot z 0.6
+    np.testing.assert_allclose(frames.extras["keypoints"], tip, atol=EXACT)
+    np.testing.assert_allclose(frames.camera.to_plane(np.zeros(2)), [0.0, 0.6], atol=EXACT)
+    controls = frames.u[..., 0]
+    assert np.all(controls == controls[:, :1]) and np.all(np.abs(controls) <= 2)
+    assert np.sum(controls[:, 0] == 0) == 2
+    train, validation = frames.split()
+    assert (train.num_runs, validation.num_runs) == (8, 2)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("scene", ["cartpole", "acrobot"])
+def test_keycld_rk4_scenes_and_their_keypoints(scene):
+    protocol = keyvision.RenderProtocol(runs=3, frames=3, validation_runs=0)
+    frames = keyvision.render(f"keycld/{scene}", protocol=protocol, cache=False, workers=1)
+    assert frames.dt == 0.01 and frames.info["integrator"] == "RK4"
+    first, second = frames.extras["keypoints"][..., :2], frames.extras["keypoints"][..., 2:]
+    if scene == "cartpole":  # the cart on its rail at z = 1, the pole 1 m long
+        np.testing.assert_allclose(first[..., 1], 1.0, atol=EXACT)
+        anchor = first
+    else:  # the elbow 1 m from the shoulder at z = 2.1, the tip 1 m from the elbow
+        anchor = np.array([0.0, 2.1])
+        np.testing.assert_allclose(np.linalg.norm(first - anchor, axis=-1), 1.0, atol=EXACT)
+        anchor = first
+    np.testing.assert_allclose(np.linalg.norm(second - anchor, axis=-1), 1.0, atol=EXACT)
+    assert len(frames.info["keypoint_names"]) == 2
+
+
+# -- the cache, without rendering -------------------------------------------------------------------
+
+
+def _fake_frames(setup, seed, workers, progress_meter):
+    runs, count = setup["protocol"].runs, setup["protocol"].frames
+    rng = np.random.default_rng(seed)
+    return keyvision.Frames(
+        frames=rng.integers(0, 256, (runs, count, 8, 8, 3), dtype=np.uint8),
+        u=np.zeros((runs, count, 2)),
+        dt=0.01,
+        extras={"qpos": rng.normal(size=(runs, count, 2))},
+        camera=keyvision.PlanarCamera(np.eye(3), np.eye(3)[[0, 2]]),
+        info={"validation_runs": 1},
+    )
+
+
+def _refuse_to_render(*args):
+    raise AssertionError("rendered again instead of loading the cache")
+
+
+def test_cache_is_reused_and_keyed_by_the_request(tmp_path, monkeypatch):
+    monkeypatch.setattr(render_module, "_render", _fake_frames)
+    first = keyvision.render(MARKER_SCENE, protocol=SMALL, seed=3, cache=tmp_path)
+    (path,) = tmp_path.glob("*.npz")
+    monkeypatch.setattr(render_module, "_render", _refuse_to_render)
+    again = keyvision.render(MARKER_SCENE, protocol=SMALL, seed=3, cache=tmp_path)
+    np.testing.assert_array_equal(again.frames, first.frames)
+    assert again.info["cache_key"] == first.info["cache_key"]
+    monkeypatch.setattr(render_module, "_render", _fake_frames)
+    for change in ({"seed": 4}, {"protocol": dataclasses.replace(SMALL, frames=5)}, {"camera": "follow"}):
+        keyvision.render(MARKER_SCENE, **{"protocol": SMALL, "seed": 3, **change}, cache=tmp_path)
+    assert len(list(tmp_path.glob("*.npz"))) == 4
+
+
+def test_mismatched_cache_is_refused_naming_the_file(tmp_path, monkeypatch):
+    monkeypatch.setattr(render_module, "_render", _fake_frames)
+    keyvision.render(MARKER_SCENE, protocol=SMALL, seed=3, cache=tmp_path)
+    (path,) = tmp_path.glob("*.npz")
+    other = keyvision.render(MARKER_SCENE, protocol=SMALL, seed=4, cache=False)
+    other.save(path)  # another request's frames under this request's name
+    monkeypatch.setattr(render_module, "_render", _refuse_to_render)
+    with pytest.raises(ValueError, match="another request") as error:
+        keyvision.render(MARKER_SCENE, protocol=SMALL, seed=3, cache=tmp_path)
+    assert str(path) in str(error.value)
+
+
+def test_truncated_cache_is_refused_naming_the_file(tmp_path, monkeypatch):
+    monkeypatch.setattr(render_module, "_render", _fake_frames)
+    keyvision.render(MARKER_SCENE, protocol=SMALL, seed=3, cache=tmp_path)
+    (path,) = tmp_path.glob("*.npz")
+    path.write_bytes(path.read_bytes()[:-100])
+    monkeypatch.setattr(render_module, "_render", _refuse_to_render)
+    with pytest.raises(ValueError, match="delete the file") as error:
+        keyvision.render(MARKER_SCENE, protocol=SMALL, seed=3, cache=tmp_path)
+    assert str(path) in str(error.value)
+
+
+def test_cache_directory_follows_the_environment(tmp_path, monkeypatch):
+    monkeypatch.setenv("KEYVISION_CACHE", str(tmp_path / "cache"))
+    assert keyvision.cache_directory() == tmp_path / "cache"
+    monkeypatch.setattr(render_module, "_render", _fake_frames)
+    keyvision.render(MARKER_SCENE, protocol=SMALL, cache=True)
+    assert len(os.listdir(tmp_path / "cache")) == 1
+
+
+def test_bad_cameras_and_sites_are_refused():
+    with pytest.raises(ValueError, match="no camera 'missing'"):
+        keyvision.render(MARKER_SCENE, camera="missing", protocol=SMALL, cache=False)
+    with pytest.raises(ValueError, match="fixed in the world"):
+        keyvision.render(MARKER_SCENE, camera="follow", protocol=SMALL, cache=False)
+    with pytest.raises(ValueError, match="no site 'tip'"):
+        keyvision.render(MARKER_SCENE, camera="oblique", keypoints=["tip"], protocol=SMALL, cache=False)
+    with pytest.raises(ValueError, match="validation_runs"):
+        keyvision.RenderProtocol(runs=3, validation_runs=4)
