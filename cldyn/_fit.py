@@ -265,6 +265,7 @@ def fit(
     out: "str | os.PathLike | None" = None,
     checkpoint_every: int = 500,
     resume: bool = False,
+    force: bool = False,
     stage: str | None = None,
     history_format: str = "json",
     trainable: Any = None,
@@ -305,6 +306,10 @@ def fit(
       afresh). The result is bitwise that of an uninterrupted fit. A checkpoint written with another
       key, stage, loss, batching, dtype, set of trainable parameters or other data is refused with
       a `CheckpointError` that names the difference; `steps` may grow.
+    - `force`: with `resume`, continue from a checkpoint even though it was written by another
+      training (other data, loss, key, batching or validation data); its model and optimiser state
+      must still have this fit's structure. The checkpoints written from then on record this fit's
+      settings.
     - `stage`: a name for one stage of a staged schedule (letters, digits, `_.-`); its files carry
       the name, so stages in one directory neither overwrite nor resume each other.
     - `history_format`: `"json"` or `"csv"`.
@@ -413,12 +418,11 @@ def fit(
             recorded = header.get("settings")
             recorded = recorded if isinstance(recorded, dict) else {}
             changed = [name for name in _RESUMED_SETTINGS if recorded.get(name) != settings[name]]
-            if changed:
+            if changed and not force:
                 raise CheckpointError(
                     f"checkpoint {checkpoint} was written by another training: its {', '.join(changed)} "
                     f"{'differs' if len(changed) == 1 else 'differ'} from this fit's; resume with the same "
-                    "settings, or start afresh in another "
-                    "directory"
+                    "settings, pass force=True to continue anyway, or start afresh in another directory"
                 )
             if not all(name in header for name in ("step", "history", "seconds")):
                 raise CheckpointError(f"checkpoint {checkpoint} is corrupt: its header lacks the fit's state")

@@ -66,6 +66,14 @@ def keycld_model(
     if constraint is not None and not isinstance(constraint, AbstractConstraint):
         raise TypeError(f"constraint must be an AbstractConstraint or None, got {type(constraint).__name__}")
     count = size // dim
+    if constraint is not None:
+        try:  # a constraint on keypoints the coordinates lack fails only when traced: say so here
+            jax.eval_shape(constraint, jax.ShapeDtypeStruct((size,), jnp.float32))
+        except (TypeError, IndexError, ValueError) as error:
+            raise ValueError(
+                f"the constraint does not apply to {count} keypoint{'s' if count > 1 else ''} of dimension "
+                f"{dim} (size {size}): {error}"
+            ) from None
     masses = jnp.ones(count) if masses is None else jnp.asarray(masses, dtype=float)
     if masses.shape != (count,):
         raise ValueError(f"masses must have shape ({count},), one per keypoint; got {masses.shape}")

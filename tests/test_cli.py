@@ -4,6 +4,9 @@ do their job."""
 
 import importlib
 import json
+import os
+import shlex
+import stat
 import sys
 
 import jax
@@ -11,7 +14,7 @@ import numpy as np
 import pytest
 
 import cldyn
-from cldyn._cli import _record, main
+from cldyn._cli import _fit as fit_command, _record, main
 
 COMMANDS = ("demo", "record", "validate", "identify", "control", "fit")
 
@@ -87,6 +90,63 @@ def test_an_unusable_output_fails_before_any_work(tmp_path, capsys):
         assert f"cldyn {command}: error: --out {blocker}" in err, err
 
 
+@pytest.mark.skipif(os.geteuid() == 0, reason="root writes through permission bits")
+def test_a_read_only_output_directory_fails_before_any_work(tmp_path, capsys):
+    locked = tmp_path / "locked"
+    locked.mkdir()
+    locked.chmod(stat.S_IRUSR | stat.S_IXUSR)
+    try:
+        for command, arguments in {
+            "record": ["--mjcf", "keycld/pendulum", "--out", str(locked / "x.npz")],
+            "validate": ["--mjcf", "keycld/pendulum", "--out", str(locked / "v")],
+            "fit": ["--scene", "pendulum", "--out", str(locked)],
+        }.items():
+            status, _, err = _run(capsys, [command] + arguments)
+            assert status == 2 and f"cldyn {command}: error: --out {locked}" in err
+            assert "cannot create files in" in err
+        assert not any(locked.iterdir())
+    finally:
+        locked.chmod(stat.S_IRWXU)
+
+
+# command -> (its arguments with --out in {tmp}, an earlier run's result the command would replace)
+EXISTING = {
+    "record": (["--mjcf", "keycld/pendulum", "--out", "{tmp}/x"], "x.npz"),
+    "validate": (["--mjcf", "keycld/pendulum", "--out", "{tmp}"], "validation.json"),
+    "identify": (["--data", "{tmp}/in.npz", "--model", "acrobot", "--out", "{tmp}"], "report.md"),
+    "control": (["--mjcf", "keycld/pendulum", "--out", "{tmp}"], "control.png"),
+    "demo": (["--out", "{tmp}"], "identify/report.json"),
+    "fit": (["--scene", "pendulum", "--out", "{tmp}"], "model.eqx"),
+}
+
+
+@pytest.mark.parametrize("command", sorted(EXISTING))
+def test_existing_results_are_refused_without_overwrite(command, tmp_path, capsys):
+    arguments, name = EXISTING[command]
+    (tmp_path / "in.npz").write_bytes(b"")
+    earlier = tmp_path / name
+    earlier.parent.mkdir(exist_ok=True)
+    earlier.write_bytes(b"an earlier result")
+    status, _, err = _run(capsys, [command] + [a.format(tmp=tmp_path) for a in arguments])
+    assert status == 2 and f"cldyn {command}: error: --out: " in err
+    assert f"{earlier} already exists" in err and "--overwrite" in err
+    assert earlier.read_bytes() == b"an earlier result"
+
+
+def test_contradictory_fit_options(tmp_path, capsys):
+    common = ["fit", "--scene", "pendulum", "--out", str(tmp_path / "f")]
+    status, _, err = _run(capsys, common + ["--force"])
+    assert status == 2 and "cldyn fit: error: --force only applies with --resume" in err
+    status, _, err = _run(capsys, common + ["--resume", "--overwrite"])
+    assert status == 2 and "cldyn fit: error: --resume continues" in err
+    # too few runs for the validation runs and the batch: refused before recording anything
+    status, _, err = _run(capsys, common + ["--runs", "10"])
+    assert status == 2 and "error: --validation-runs 50: must be fewer than the 10 runs" in err
+    status, _, err = _run(capsys, common + ["--runs", "60", "--batch-size", "11"])
+    assert status == 2 and "error: --batch-size 11: larger than the 10 training runs" in err
+    assert not any(tmp_path.iterdir())
+
+
 def test_a_missing_input_and_an_unknown_scene_are_one_error_line(tmp_path, capsys):
     arguments = ["--data", str(tmp_path / "missing.npz"), "--model", "acrobot", "--out", str(tmp_path / "r")]
     status, _, err = _run(capsys, ["identify"] + arguments)
@@ -135,34 +195,73 @@ def standard_promotion():
         yield
 
 
-def test_fit_resume_and_load(tmp_path, capsys, standard_promotion):
+class _InterruptAt(cldyn.AbstractProgressMeter):
+    """A progress meter that presses Ctrl-C when the fit reports step `step`."""
+
+    step: int
+
+    def start(self, total, *, initial=0, desc="", unit="step"):
+        return None
+
+    def update(self, state, done, info=None):
+        if done >= self.step:
+            raise KeyboardInterrupt
+        return state
+
+    def close(self, state):
+        pass
+
+
+def test_fit_resume_overwrite_and_interrupt(tmp_path, capsys, monkeypatch, standard_promotion):
     data = _pendulum_runs(4, 10, 0.02).save(tmp_path / "runs.npz")
     out = tmp_path / "fit"
     common = ["fit", "--data", str(data), "--constraint", "pendulum", "--out", str(out), "--no-progress"]
-    common += ["--validation-runs", "1", "--batch-size", "2", "--width", "8", "--checkpoint-every", "2"]
-    status, stdout, err = _run(capsys, common + ["--steps", "2"])
+    common += ["--validation-runs", "1", "--batch-size", "2", "--checkpoint-every", "2"]
+    status, stdout, err = _run(capsys, common + ["--steps", "2", "--width", "8"])
     assert status == 0, err
     assert json.loads(stdout.splitlines()[-1])["steps"] == 2
-    status, stdout, _ = _run(capsys, common + ["--steps", "4", "--resume"])
-    summary = json.loads(stdout.splitlines()[-1])
-    assert status == 0 and summary["steps"] == 4 and summary["validation"] is not None
+    umask = os.umask(0)
+    os.umask(umask)
+    for file in out.iterdir():  # the files honour the umask, as open() would
+        assert stat.S_IMODE(file.stat().st_mode) == 0o666 & ~umask, file
+    fit_json = (out / "fit.json").read_text()
+    # the fit is neither replaced nor resumed with other options unless asked to
+    status, _, err = _run(capsys, common + ["--steps", "2", "--width", "8"])
+    assert status == 2 and "fit.json" in err and "--resume" in err and "--overwrite" in err
+    status, _, err = _run(capsys, common + ["--steps", "4", "--width", "8", "--resume"])
+    assert status == 2 and "cldyn fit: error: --resume: the options differ" in err
+    assert "steps 2 -> 4" in err and "--force" in err
+    assert (out / "fit.json").read_text() == fit_json
+
+    # --overwrite with another width, interrupted at step 4: the first model stays loadable
+    monkeypatch.setattr(fit_command, "_meter", lambda args: _InterruptAt(4))
+    replacing = common + ["--steps", "6", "--width", "16", "--validate-every", "2", "--overwrite"]
+    status, _, err = _run(capsys, replacing)
+    assert status == 130
+    assert f"cldyn fit: interrupted; the last checkpoint is {out / 'checkpoint.eqx'} (step 4 of 6)" in err
+    resume = shlex.split(err.strip().splitlines()[-1])
+    assert resume[0] == "cldyn" and "--resume" in resume and "--force" in resume
+    assert "--overwrite" not in resume
     model, spec = cldyn.load_fit(out)
-    assert isinstance(model, cldyn.ConstrainedLagrangian)
-    assert spec["model"]["constraint"] == "pendulum" and spec["model"]["width"] == 8
-    # a KeyCLD model without constraints is an expected failure, not a traceback
-    bad = [
-        "fit",
-        "--data",
-        str(data),
-        "--out",
-        str(tmp_path / "bad"),
-        "--steps",
-        "1",
-        "--validation-runs",
-        "1",
-    ]
-    status, _, err = _run(capsys, bad)
-    assert status == 2 and "cldyn fit: error:" in err and "needs a constraint" in err
+    assert spec["model"]["width"] == 8 and isinstance(model, cldyn.ConstrainedLagrangian)
+
+    # the printed command continues it; fit.json then describes it and keeps the earlier settings
+    monkeypatch.setattr(fit_command, "_meter", lambda args: cldyn.NoProgressMeter())
+    status, stdout, err = _run(capsys, resume[1:])
+    assert status == 0, err
+    summary = json.loads(stdout.splitlines()[-1])
+    assert summary["steps"] == 6 and summary["validation"] is not None
+    model, spec = cldyn.load_fit(out)
+    assert spec["model"]["width"] == 16 and spec["previous"]["model"]["width"] == 8
+    assert spec["model"]["constraint"] == "pendulum"
+
+    # a KeyCLD model without constraints, or with a scene's constraints that do not fit the data,
+    # is an expected failure before any training, not a traceback
+    for extra, message in (([], "needs a constraint"), (["--constraint", "acrobot"], "--constraint acrobot")):
+        bad = ["fit", "--data", str(data), "--out", str(tmp_path / "bad"), "--validation-runs", "1"]
+        status, _, err = _run(capsys, bad + ["--batch-size", "2"] + extra)
+        assert status == 2 and "cldyn fit: error:" in err and message in err
+    assert not (tmp_path / "bad").exists()
 
 
 @pytest.mark.mujoco
@@ -174,6 +273,10 @@ def test_record_and_validate(tmp_path, capsys):
     argv = ["record", "--mjcf", "keycld/pendulum", "--out", str(path), "--runs", "2", "--duration", "0.2"]
     status, out, _ = _run(capsys, argv + ["--dt", "0.02", "--seed", "3"])
     assert status == 0 and out.startswith("recorded 2 runs x 11 samples (dt 0.02 s")
+    status, _, err = _run(capsys, argv + ["--dt", "0.02", "--seed", "4"])
+    assert status == 2 and "already exists" in err and cldyn.Sequences.load(path).info["seed"] == 3
+    status, _, err = _run(capsys, argv + ["--dt", "0.02", "--seed", "3", "--overwrite"])
+    assert status == 0, err
     data = cldyn.Sequences.load(path)
     assert data.x.shape == (2, 11, 2) and data.info["mjcf"] == "keycld/pendulum" and data.info["seed"] == 3
     # the single keypoint is the pole's tip: it stays on a circle about the pivot

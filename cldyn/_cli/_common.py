@@ -6,8 +6,10 @@ line refuse the same values with the same words.
 """
 
 import argparse
+import math
 import os
 import pathlib
+import tempfile
 from collections.abc import Callable
 
 from .._misc import check_fraction, check_positive
@@ -63,6 +65,8 @@ def positive(*, integer: bool = False, allow_zero: bool = False) -> Callable[[st
             raise argparse.ArgumentTypeError(_strip(str(error))) from None
 
     parse.__name__ = "integer" if integer else "number"
+    # what the type accepts, for the fuzz test that generates values it must refuse
+    parse.accepts = ("integer" if integer else "number", ">= 0" if allow_zero else "> 0")
     return parse
 
 
@@ -74,9 +78,46 @@ def fraction(text: str) -> float:
         raise argparse.ArgumentTypeError(_strip(str(error))) from None
 
 
+fraction.accepts = ("number", "in (0, 1)")
+
+
+def finite(text: str) -> float:
+    """An argparse type: any finite number."""
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"must be a number, got {text!r}") from None
+    if not math.isfinite(value):
+        raise argparse.ArgumentTypeError(f"must be a finite number, got {text!r}")
+    return value
+
+
+finite.accepts = ("number", "finite")
+
+
 def seed(text: str) -> int:
     """An argparse type: a seed, an integer `>= 0`."""
     return positive(integer=True, allow_zero=True)(text)
+
+
+seed.accepts = ("integer", ">= 0")
+
+
+def add_overwrite(parser: argparse.ArgumentParser, what: str) -> None:
+    """The `--overwrite` flag: without it, a command refuses to replace results already at `--out`."""
+    parser.add_argument(
+        "--overwrite",
+        action="store_true",
+        help=f"replace {what} already at --out (without it the command refuses before any work)",
+    )
+
+
+def refuse_existing(files, *, overwrite: bool, hint: str = "pass --overwrite to replace") -> None:
+    """Refuse, before any work, to replace the results `files` of an earlier run unless `overwrite`."""
+    existing = [str(f) for f in files if os.path.lexists(f)]
+    if existing and not overwrite:
+        which = "exists" if len(existing) == 1 else "exist"
+        raise CommandError(f"--out: {', '.join(existing)} already {which} (an earlier run's results); {hint}")
 
 
 def enable_float64() -> None:
@@ -88,33 +129,47 @@ def enable_float64() -> None:
 
 def _writable_directory(directory: pathlib.Path, label: str) -> None:
     """Check that files can be created in `directory`, or in its nearest existing ancestor if it does
-    not exist yet (nothing is created here: a run that fails later leaves no empty directories)."""
+    not exist yet. The check creates a temporary file and removes it at once: permission bits say
+    nothing for root, read-only mounts or `/proc`, and a run that fails later must leave no empty
+    directories behind."""
     probe = directory
     while not probe.exists() and probe.parent != probe:
         probe = probe.parent
     if not probe.is_dir():
         raise CommandError(f"{label}: {probe} is a file, not a directory")
-    if not os.access(probe, os.W_OK | os.X_OK):
-        raise CommandError(f"{label}: cannot write in {probe} (permission denied or read-only)")
+    try:
+        with tempfile.TemporaryFile(dir=probe, prefix=".cldyn-write-check-"):
+            pass
+    except OSError as error:
+        reason = error.strerror or type(error).__name__
+        raise CommandError(f"{label}: cannot create files in {probe} ({reason})") from None
 
 
-def output_directory(path: "str | os.PathLike") -> pathlib.Path:
+def output_directory(
+    path: "str | os.PathLike", *, results: tuple[str, ...] = (), overwrite: bool = False
+) -> pathlib.Path:
     """Check, before any work, that results can be written into the directory `path` (which the
-    command's writers create if needed)."""
+    command's writers create if needed) and that the files `results` there, an earlier run's, are
+    not replaced unless `overwrite`."""
     directory = pathlib.Path(path)
     if directory.exists() and not directory.is_dir():
         raise CommandError(f"--out {directory}: exists and is not a directory")
     _writable_directory(directory, f"--out {directory}")
+    refuse_existing([directory / name for name in results], overwrite=overwrite)
     return directory
 
 
-def output_file(path: "str | os.PathLike") -> pathlib.Path:
-    """Check, before any work, that the file `path` can be written (its directory is created by the
-    writer if needed)."""
+def output_file(path: "str | os.PathLike", *, suffix: str, overwrite: bool = False) -> pathlib.Path:
+    """Check, before any work, that the file `path` (with `suffix` appended if it lacks it, as the
+    writer does) can be written and does not exist unless `overwrite`; its directory is created by
+    the writer if needed."""
     file = pathlib.Path(path)
+    if file.suffix != suffix:
+        file = file.with_name(file.name + suffix)
     if file.is_dir():
         raise CommandError(f"--out {file}: is a directory; give a file name")
     _writable_directory(file.parent, f"--out {file}")
+    refuse_existing([file], overwrite=overwrite)
     return file
 
 

@@ -4,7 +4,9 @@ import argparse
 import json
 import time
 
-from ._common import add_command, enable_float64, output_directory, positive, seed
+from ._common import add_command, add_overwrite, enable_float64, output_directory, positive, seed
+
+RESULTS = ("control.json", "control.png")
 
 DAMPING_FORMS = ("keypoint", "output")
 
@@ -31,12 +33,13 @@ def register(subparsers) -> None:
     parser.add_argument("--runs", type=positive(integer=True), default=20, help="random starts")
     parser.add_argument("--duration", type=positive(), default=10.0, help="seconds per run")
     parser.add_argument("--seed", type=seed, default=0, help="seed of the starts")
+    add_overwrite(parser, "control.json and control.png")
     parser.set_defaults(run=run)
 
 
 def run(args: argparse.Namespace) -> int:
     """Swing up, write control.json and control.png, print one line."""
-    out = output_directory(args.out)
+    out = output_directory(args.out, results=RESULTS, overwrite=args.overwrite)
     enable_float64()
     import jax
 

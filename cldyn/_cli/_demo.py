@@ -9,8 +9,8 @@ effect, adds it, refits, and reports the error before and after.
 import argparse
 import time
 
-from ._common import add_command, enable_float64, output_directory, positive, seed
-from ._identify import narrative
+from ._common import add_command, add_overwrite, enable_float64, output_directory, positive, seed
+from ._identify import REPORT_FILES, narrative
 
 SCENE = "acrobot"
 
@@ -28,13 +28,15 @@ def register(subparsers) -> None:
     parser.add_argument("--duration", type=positive(), default=4.0, help="seconds per run")
     parser.add_argument("--noise", type=positive(allow_zero=True), default=1e-3, help="position noise (m)")
     parser.add_argument("--seed", type=seed, default=0, help="seed of the recording and the identification")
+    add_overwrite(parser, "the recording and the report")
     parser.set_defaults(run=run)
 
 
 def run(args: argparse.Namespace) -> int:
     """Record (100 Hz samples, MuJoCo RK4 at 2 ms, KeyCLD's random starts and constant controls),
     identify against the nominal model, save and print the report."""
-    out = output_directory(args.out)
+    results = ("measured.npz",) + tuple(f"identify/{name}" for name in REPORT_FILES)
+    out = output_directory(args.out, results=results, overwrite=args.overwrite)
     enable_float64()
     import cldyn
     from cldyn.mujoco import identify_recording, record
@@ -55,7 +57,7 @@ def run(args: argparse.Namespace) -> int:
         seed=args.seed,
         progress_meter=cldyn.TqdmProgressMeter(),
     )
-    data.save(out / "measured.npz", overwrite=True)
+    data.save(out / "measured.npz", overwrite=args.overwrite)
     print(f"[2/3] identifying what the nominal model of {SCENE!r} is missing")
     result = identify_recording(data, SCENE, seed=args.seed, progress_meter=cldyn.TqdmProgressMeter())
     print(narrative(result, data.num_samples))

@@ -7,13 +7,27 @@ specification, the data, the options and seeds), `model.eqx` (the trained parame
 
 import argparse
 import json
+import os
+import shlex
 import sys
 
 from .._keycld import KEYCLD_SCENES, MODEL_KINDS
-from ._common import INTERRUPTED, CommandError, add_command, input_file, output_directory, positive, seed
+from ._common import (
+    INTERRUPTED,
+    CommandError,
+    add_command,
+    finite,
+    input_file,
+    output_directory,
+    positive,
+    refuse_existing,
+    seed,
+)
 
 LOSSES = ("collocation", "rollout", "collocation+rollout", "inverse")
 SPEC_NAME = "fit.json"  # what cldyn.load_fit reads
+# Every file a fit leaves in --out (cldyn.fit's, without a stage, and fit.json).
+FIT_FILES = (SPEC_NAME, "model.eqx", "checkpoint.eqx", "history.json", "history.csv")
 
 
 def register(subparsers) -> None:
@@ -42,7 +56,7 @@ def register(subparsers) -> None:
     source.add_argument("--data-seed", type=seed, default=0, help="seed of the recorded data")
     source.add_argument(
         "--origin",
-        type=float,
+        type=finite,
         nargs=2,
         metavar=("X", "Y"),
         help="point subtracted from the keypoints (default: the pivot of a KeyCLD scene)",
@@ -70,7 +84,23 @@ def register(subparsers) -> None:
     training.add_argument("--lr", type=positive(), default=3e-3, help="peak learning rate")
     training.add_argument("--clip", type=positive(), default=5.0, help="element-wise gradient clipping")
     training.add_argument("--seed", type=seed, default=0, help="seed of the model and the batches")
-    training.add_argument("--resume", action="store_true", help="continue from --out/checkpoint.eqx")
+    training.add_argument(
+        "--resume",
+        action="store_true",
+        help="continue the fit in --out from its checkpoint.eqx (the options must be those it was started "
+        "with)",
+    )
+    training.add_argument(
+        "--force",
+        action="store_true",
+        help="with --resume: continue although options differ from --out/fit.json (the earlier settings "
+        "are kept in fit.json under 'previous')",
+    )
+    training.add_argument(
+        "--overwrite",
+        action="store_true",
+        help="start afresh in an --out that holds a fit; its model stays loadable until this one ends",
+    )
     training.add_argument("--validate-every", type=count, default=250, help="steps between validations")
     training.add_argument("--checkpoint-every", type=count, default=500, help="steps between checkpoints")
     training.add_argument("--history", choices=("json", "csv"), default="json", help="history format")
@@ -135,11 +165,91 @@ def _loss(name: str):
     }[name]()
 
 
-def run(args: argparse.Namespace) -> int:
-    """Load or record the data, build the model, fit, write fit.json, print a JSON summary."""
+def _check_options(args: argparse.Namespace) -> None:
+    """The checks that need no data: before anything is loaded or recorded."""
     if (args.data is None) == (args.scene is None):
         raise CommandError("give exactly one of --data FILE and --scene NAME")
+    if args.force and not args.resume:
+        raise CommandError("--force only applies with --resume")
+    if args.resume and args.overwrite:
+        raise CommandError("--resume continues the fit in --out and --overwrite replaces it: give one")
+    if args.scene is not None:
+        _check_runs(args, args.runs)
+
+
+def _check_runs(args: argparse.Namespace, runs: int) -> None:
+    if args.validation_runs >= runs:
+        raise CommandError(
+            f"--validation-runs {args.validation_runs}: must be fewer than the {runs} runs of the data"
+        )
+    if args.batch_size > runs - args.validation_runs:
+        raise CommandError(
+            f"--batch-size {args.batch_size}: larger than the {runs - args.validation_runs} training runs "
+            f"({runs} runs, {args.validation_runs} for validation)"
+        )
+
+
+def _previous_spec(args: argparse.Namespace, path) -> dict | None:
+    """The settings of the fit being resumed, from its fit.json (None if it has none)."""
+    if not (args.resume and path.is_file()):
+        return None
+    try:
+        previous = json.loads(path.read_text())
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as error:
+        raise CommandError(f"{path}: unreadable ({error}); cannot check what --resume continues") from None
+    if not isinstance(previous, dict):
+        raise CommandError(f"{path}: not a fit's settings; cannot check what --resume continues")
+    return previous
+
+
+def _differences(old, new, prefix: str = "") -> list[str]:
+    """`name: old -> new` for every setting that differs, nested names joined by dots."""
+    if isinstance(old, dict) and isinstance(new, dict):
+        names = [n for n in {**old, **new} if n != "previous"]
+        return [d for n in names for d in _differences(old.get(n), new.get(n), f"{prefix}{n}.")]
+    return [] if old == new else [f"{prefix.rstrip('.')} {json.dumps(old)} -> {json.dumps(new)}"]
+
+
+def _resume_command(args: argparse.Namespace, *, force: bool) -> str:
+    argv = [a for a in args.argv if a != "--overwrite"]
+    argv += [flag for flag in ("--resume",) + (("--force",) if force else ()) if flag not in argv]
+    return shlex.join(["cldyn"] + argv)
+
+
+def _interrupted(args: argparse.Namespace, out, *, spec_current: bool) -> int:
+    """Say where the last checkpoint is and how to continue from it."""
+    from .._checkpoint import CheckpointError, read_header
+
+    checkpoint = out / "checkpoint.eqx"
+    try:
+        step = read_header(checkpoint)[0].get("step")
+    except CheckpointError:
+        step = None
+    if step is None:
+        where = "no checkpoint was written; nothing to resume"
+    else:
+        # fit.json still describes the earlier fit (kept loadable) when this one replaces or changes it
+        where = (
+            f"the last checkpoint is {checkpoint} (step {step} of {args.steps}); continue with:\n  "
+            + _resume_command(args, force=not spec_current)
+        )
+    print(f"cldyn fit: interrupted; {where}", file=sys.stderr)
+    return INTERRUPTED
+
+
+def run(args: argparse.Namespace) -> int:
+    """Load or record the data, build the model, fit, write fit.json, print a JSON summary."""
+    _check_options(args)
     out = output_directory(args.out)
+    created = not out.exists()
+    if not args.resume:
+        refuse_existing(
+            [out / name for name in FIT_FILES],
+            overwrite=args.overwrite,
+            hint="pass --resume to continue that fit or --overwrite to start afresh",
+        )
+    path = out / SPEC_NAME
+    previous = _previous_spec(args, path)
     import jax
     import jax.numpy as jnp
     import optax
@@ -150,8 +260,7 @@ def run(args: argparse.Namespace) -> int:
 
     data, description, scene = _data(args)
     constraint = args.constraint or scene
-    if args.validation_runs >= data.num_runs:
-        raise CommandError(f"--validation-runs {args.validation_runs}: only {data.num_runs} runs in the data")
+    _check_runs(args, data.num_runs)
     train, validation = (
         (data, None) if args.validation_runs == 0 else data.split(data.num_runs - args.validation_runs)
     )
@@ -165,7 +274,12 @@ def run(args: argparse.Namespace) -> int:
         "depth": args.depth or (3 if node2 else 2),
     }
     model_key, fit_key = jax.random.split(jax.random.key(args.seed))
-    model = cldyn.model_from_spec(model_spec, key=model_key)
+    try:
+        model = cldyn.model_from_spec(model_spec, key=model_key)
+    except ValueError as error:
+        if model_spec["constraint"] is None:
+            raise
+        raise CommandError(f"--constraint {model_spec['constraint']}: {error}") from None
     schedule = optax.cosine_decay_schedule(args.lr, args.steps, alpha=0.01)
     optimizer = optax.chain(optax.clip(args.clip), optax.adam(schedule))
     spec = {
@@ -182,12 +296,20 @@ def run(args: argparse.Namespace) -> int:
         "validation_runs": args.validation_runs,
         "dtype": "float32",
     }
-    path = out / SPEC_NAME
-    if args.resume and path.is_file():
-        previous = json.loads(path.read_text())
-        if previous.get("model") != model_spec or previous.get("seed") != args.seed:
-            raise CommandError(f"{path}: --resume with a different model or seed than the fit in {out}")
-    atomic_write(path, json.dumps(spec, indent=1))
+    changed = [] if previous is None else _differences(previous, json.loads(json.dumps(spec)))
+    if changed and not args.force:
+        raise CommandError(
+            f"--resume: the options differ from those of the fit in {path} ({'; '.join(changed)}); "
+            "resume with the same options, add --force to continue with these, or start afresh in "
+            "another --out"
+        )
+    if changed:
+        spec["previous"] = previous
+    # fit.json is written before training only where it describes no earlier model: an earlier fit
+    # (replaced by --overwrite or changed by --force) stays loadable until this one has finished.
+    fresh = not path.exists()
+    if fresh:
+        atomic_write(path, json.dumps(spec, indent=1))
     try:
         result = cldyn.fit(
             model,
@@ -202,17 +324,21 @@ def run(args: argparse.Namespace) -> int:
             out=out,
             checkpoint_every=args.checkpoint_every,
             resume=args.resume,
+            force=args.force,
             history_format=args.history,
             dtype=jnp.float32,
             progress_meter=_meter(args),
         )
-    except KeyboardInterrupt:
-        print(
-            f"cldyn fit: interrupted; the last checkpoint (every {args.checkpoint_every} steps) is in {out}: "
-            "run the same command with --resume to continue",
-            file=sys.stderr,
-        )
-        return INTERRUPTED
+    except BaseException as error:
+        if fresh and not (out / "checkpoint.eqx").exists():
+            os.unlink(path)  # nothing to resume: leave the directory as it was
+            if created and not any(out.iterdir()):
+                out.rmdir()
+        if isinstance(error, KeyboardInterrupt):
+            return _interrupted(args, out, spec_current=fresh or not (changed or args.overwrite))
+        raise
+    if not fresh and (changed or args.overwrite):
+        atomic_write(path, json.dumps(spec, indent=1))
     last = result.history[-1] if result.history else {}
     summary = {
         "out": str(out),

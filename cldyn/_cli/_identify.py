@@ -2,7 +2,19 @@
 
 import argparse
 
-from ._common import add_command, enable_float64, fraction, input_file, output_directory, positive, seed
+from ._common import (
+    add_command,
+    add_overwrite,
+    enable_float64,
+    fraction,
+    input_file,
+    output_directory,
+    positive,
+    seed,
+)
+
+# what Identification.save writes
+REPORT_FILES = ("report.json", "report.md", "error_over_time.png", "residual_vs_feature.png")
 
 
 def register(subparsers) -> None:
@@ -50,6 +62,7 @@ def register(subparsers) -> None:
         "--test-stride", type=count, default=Smoothing.test_stride, help="test function stride"
     )
     parser.add_argument("--seed", type=seed, default=0, help="seed of the split and the bootstrap")
+    add_overwrite(parser, "a report")
     parser.set_defaults(run=run)
 
 
@@ -75,7 +88,7 @@ def narrative(result, samples: int) -> str:
 def run(args: argparse.Namespace) -> int:
     """Identify, save the report, print its summary."""
     path = input_file(args.data, "--data")
-    out = output_directory(args.out)
+    out = output_directory(args.out, results=REPORT_FILES, overwrite=args.overwrite)
     enable_float64()
     import cldyn
     from cldyn.mujoco import identify_recording

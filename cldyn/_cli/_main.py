@@ -26,6 +26,7 @@ _EXPECTED = (
     CheckpointError,
     NonFiniteLossError,
     eqx.EquinoxRuntimeError,
+    MemoryError,
 )
 
 
@@ -63,11 +64,13 @@ def main(argv: list[str] | None = None) -> int:
     if args.command is None:
         parser.print_help()
         return 0
+    args.argv = list(sys.argv[1:] if argv is None else argv)  # for the resume command fit prints
     try:
         return int(args.run(args) or 0)
     except KeyboardInterrupt:
         print(f"cldyn {args.command}: interrupted", file=sys.stderr)
         return INTERRUPTED
     except _EXPECTED as error:
-        print(f"cldyn {args.command}: error: {error}", file=sys.stderr)
+        what = f"out of memory ({error})" if isinstance(error, MemoryError) else str(error)
+        print(f"cldyn {args.command}: error: {what}", file=sys.stderr)
         return 2

@@ -2,7 +2,7 @@
 
 import argparse
 
-from ._common import CommandError, add_command, output_file, positive, seed
+from ._common import CommandError, add_command, add_overwrite, finite, output_file, positive, seed
 
 MJCF_HELP = (
     "an MJCF file, a dm_control suite name (acrobot, cartpole, ...) or keycld/<pendulum|cartpole|acrobot>"
@@ -21,7 +21,7 @@ def register(subparsers) -> None:
         "constant control per run within the control range, zero in 20% of the runs.",
     )
     parser.add_argument("--mjcf", required=True, help=MJCF_HELP)
-    parser.add_argument("--out", required=True, help="the .npz file to write")
+    parser.add_argument("--out", required=True, help="the .npz file to write (.npz is appended if missing)")
     parser.add_argument("--runs", type=positive(integer=True), default=500, help="number of runs")
     parser.add_argument("--duration", type=positive(), default=1.0, help="seconds per run")
     parser.add_argument(
@@ -45,12 +45,13 @@ def register(subparsers) -> None:
     )
     parser.add_argument(
         "--control-range",
-        type=float,
+        type=finite,
         nargs=2,
         default=None,
         metavar=("LOW", "HIGH"),
         help="range of the random controls (default: ctrlrange, or -2 2 where unlimited)",
     )
+    add_overwrite(parser, "a recording")
     parser.set_defaults(run=run)
 
 
@@ -58,9 +59,9 @@ def run(args: argparse.Namespace) -> int:
     """Record, save, print one line."""
     if args.control_range is not None:
         low, high = args.control_range
-        if not low < high or not all(abs(v) < float("inf") for v in (low, high)):
-            raise CommandError(f"--control-range {low:g} {high:g}: need finite LOW < HIGH")
-    out = output_file(args.out)
+        if not low < high:
+            raise CommandError(f"--control-range {low:g} {high:g}: need LOW < HIGH")
+    out = output_file(args.out, suffix=".npz", overwrite=args.overwrite)
     from cldyn.mujoco import record
 
     from .. import TqdmProgressMeter
@@ -78,7 +79,7 @@ def run(args: argparse.Namespace) -> int:
         control_range=args.control_range,
         progress_meter=TqdmProgressMeter(),
     )
-    path = data.save(out, overwrite=True)
+    path = data.save(out, overwrite=args.overwrite)
     info = data.info
     print(
         f"recorded {data.num_runs} runs x {data.num_samples} samples (dt {data.dt:g} s, "

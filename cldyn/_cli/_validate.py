@@ -3,7 +3,15 @@
 import argparse
 import json
 
-from ._common import add_command, enable_float64, output_directory, positive, seed
+from ._common import (
+    CommandError,
+    add_command,
+    add_overwrite,
+    enable_float64,
+    output_directory,
+    positive,
+    seed,
+)
 from ._record import MJCF_HELP
 
 # The report's entries printed as the one-line JSON summary.
@@ -57,12 +65,19 @@ def register(subparsers) -> None:
         default=None,
         help="exit with status 1 if the max position error exceeds this (metres)",
     )
+    add_overwrite(parser, "validation.json and the plot")
     parser.set_defaults(run=run)
 
 
 def run(args: argparse.Namespace) -> int:
     """Validate, print the summary; status 1 above `--tolerance`."""
-    out = output_directory(args.out)
+    if args.duration < args.dt:
+        raise CommandError(
+            f"--duration {args.duration:g}: shorter than --dt {args.dt:g}, so nothing would be compared"
+        )
+    from cldyn.mujoco._validate import PLOT_NAME, REPORT_NAME
+
+    out = output_directory(args.out, results=(REPORT_NAME, PLOT_NAME), overwrite=args.overwrite)
     enable_float64()
     from cldyn.mujoco import validate
 
@@ -81,8 +96,6 @@ def run(args: argparse.Namespace) -> int:
         joint_limits=args.joint_limits,
         progress_meter=TqdmProgressMeter(),
     )
-    from cldyn.mujoco._validate import PLOT_NAME, REPORT_NAME
-
     print(json.dumps({key: report[key] for key in SUMMARY}))
     print(
         f"max keypoint position error {report['max_position_error']:.3g} m over {report['runs']} runs "

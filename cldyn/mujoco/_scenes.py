@@ -204,7 +204,10 @@ def scene_xml(mjcf: "str | os.PathLike") -> str:
     if not isinstance(mjcf, str):
         raise TypeError(f"mjcf must be a path, an XML string or a scene name, got {type(mjcf).__name__}")
     if _looks_like_xml(mjcf):
-        ET.fromstring(mjcf)  # a clear parse error now rather than a MuJoCo one later
+        try:  # a clear parse error now rather than a MuJoCo one later
+            ET.fromstring(mjcf)
+        except ET.ParseError as error:
+            raise ValueError(f"the MJCF string is not well-formed XML: {error}") from None
         return mjcf
     if os.path.isfile(mjcf):
         return _file_text(pathlib.Path(mjcf))
