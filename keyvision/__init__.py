@@ -4,6 +4,7 @@ import importlib.metadata
 
 from ._data import (
     Frames as Frames,
+    ImageSequences as ImageSequences,
     PlanarCamera as PlanarCamera,
     cache_directory as cache_directory,
 )
@@ -12,7 +13,13 @@ from ._estimator import (
     KeypointEstimator as KeypointEstimator,
     KeypointEstimatorFC as KeypointEstimatorFC,
 )
-from ._evaluate import keypoint_tracking as keypoint_tracking, pose_features as pose_features
+from ._evaluate import (
+    keypoint_tracking as keypoint_tracking,
+    pose_features as pose_features,
+    predict as predict,
+    prediction_threshold as prediction_threshold,
+    valid_prediction_time as valid_prediction_time,
+)
 from ._keypoints import (
     frame_to_pixel as frame_to_pixel,
     gaussian_maps as gaussian_maps,
@@ -20,11 +27,23 @@ from ._keypoints import (
     pixel_to_frame as pixel_to_frame,
     spatial_softmax as spatial_softmax,
 )
+from ._loss import (
+    HeatmapRegulariser as HeatmapRegulariser,
+    KeypointDynamics as KeypointDynamics,
+    Reconstruction as Reconstruction,
+)
+from ._model import KeyCLD as KeyCLD
 from ._render import RenderProtocol as RenderProtocol, render as render
 from ._renderer import (
     AbstractRenderer as AbstractRenderer,
     Renderer as Renderer,
     RendererFC as RendererFC,
+)
+from ._train import (
+    Schedule as Schedule,
+    TrainResult as TrainResult,
+    encode_sequences as encode_sequences,
+    train as train,
 )
 
 try:

@@ -10,8 +10,11 @@ import zipfile
 from collections.abc import Mapping
 from typing import Any
 
+import equinox as eqx
+import jax
+import jax.numpy as jnp
 import numpy as np
-from jaxtyping import Float, UInt8
+from jaxtyping import Array, Float, Shaped, UInt8
 
 from cldyn._misc import atomic_save
 
@@ -273,3 +276,89 @@ def _describe(value) -> str:
     if isinstance(value, np.ndarray):
         return f"{value.dtype} array of shape {value.shape}"
     return type(value).__name__
+
+
+class ImageSequences(eqx.Module):
+    """Runs of images with their controls: the training data of a `keyvision.KeyCLD` model, the
+    counterpart of `cldyn.Sequences` for frames.
+
+    A PyTree whose arrays lead with the run axis, so `cldyn.fit` draws batches from it with
+    `cldyn.Runs` or `cldyn.Windows` (a window of frames is again an `ImageSequences`). Frames may stay
+    `uint8`: `fit` casts only floating arrays, and the losses convert each batch to floats in `[0, 1]`
+    (`images`), so a large dataset costs a quarter of the memory.
+
+    **Arguments:**
+
+    - `frames`: `(runs, T, H, W, C)` images, `uint8` (0..255) or floating (in `[0, 1]`).
+    - `u`: `(runs, T, l)` controls held from each frame to the next, `(runs, l)` (one per run), or
+      `None` for none.
+    - `dt`: the time between frames in seconds.
+
+    !!! example
+
+        ```python
+        train, validation = keyvision.render("keycld/pendulum").split()
+        data = keyvision.ImageSequences.from_frames(train)
+        ```
+    """
+
+    frames: Shaped[Array | np.ndarray, "runs T H W C"]
+    u: Float[Array | np.ndarray, "runs T l"]
+    dt: float = eqx.field(static=True)
+
+    def __init__(self, frames, u=None, dt: float = 1.0):
+        frames = frames if isinstance(frames, jax.Array) else np.asarray(frames)
+        if frames.ndim != 5:
+            raise ValueError(f"ImageSequences: frames must have shape (runs, T, H, W, C), got {frames.shape}")
+        runs, samples = frames.shape[:2]
+        if u is None:
+            u = np.zeros((runs, samples, 0), np.float32)
+        if not isinstance(u, jax.Array):
+            u = np.asarray(u)
+            u = u if np.issubdtype(u.dtype, np.floating) else u.astype(np.float32)
+        if u.ndim == 2 and u.shape[0] == runs:
+            broadcast = jnp.broadcast_to if isinstance(u, jax.Array) else np.broadcast_to
+            u = broadcast(u[:, None, :], (runs, samples, u.shape[1]))
+        if u.ndim != 3 or u.shape[:2] != (runs, samples):
+            raise ValueError(
+                f"ImageSequences: u must have shape ({runs}, {samples}, l) or ({runs}, l), got {u.shape}"
+            )
+        dt = float(dt)
+        if not (np.isfinite(dt) and dt > 0):
+            raise ValueError(f"ImageSequences: dt must be a positive number, got {dt}")
+        self.frames = frames
+        self.u = u
+        self.dt = dt
+
+    @classmethod
+    def from_frames(cls, frames: Frames) -> "ImageSequences":
+        """The frames and controls of rendered `Frames` (their ground truth is left behind)."""
+        return cls(frames.frames, frames.u.astype(np.float32), frames.dt)
+
+    @property
+    def num_runs(self) -> int:
+        """The number of runs."""
+        return self.frames.shape[0]
+
+    @property
+    def num_samples(self) -> int:
+        """The number `T` of frames per run."""
+        return self.frames.shape[1]
+
+    @property
+    def num_inputs(self) -> int:
+        """The number `l` of controls."""
+        return self.u.shape[2]
+
+    def images(self, dtype=jnp.float32) -> Float[Array, "runs T H W C"]:
+        """The frames as a JAX array of `dtype` with values in `[0, 1]` (`uint8` frames are divided
+        by 255)."""
+        return as_images(self.frames, dtype)
+
+
+def as_images(frames, dtype=jnp.float32) -> Float[Array, "*batch H W C"]:
+    """Frames as floating images in `[0, 1]`: integer frames (0..255) are divided by 255."""
+    frames = jnp.asarray(frames)
+    if jnp.issubdtype(frames.dtype, jnp.integer):
+        return frames.astype(dtype) / 255
+    return frames.astype(dtype)

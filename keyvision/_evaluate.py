@@ -1,9 +1,15 @@
-"""Diagnostics of learned keypoints against the ground truth rendered with the frames."""
+"""Evaluation of KeyCLD models on frames: prediction, the valid prediction time (eq. 16), and
+diagnostics of learned keypoints against the ground truth rendered with the frames."""
 
+import diffrax as dfx
+import jax.numpy as jnp
 import numpy as np
-from jaxtyping import Float
+from jaxtyping import Array, ArrayLike, Float
+
+import cldyn
 
 from ._data import Frames
+from ._model import KeyCLD
 
 
 def pose_features(frames: Frames) -> Float[np.ndarray, "R T P"]:
@@ -89,3 +95,128 @@ def keypoint_tracking(
     residual = np.sum((test_x @ coefficients - test_y) ** 2)
     spread = np.sum((test_y - test_y.mean(axis=0)) ** 2)
     return float(1 - residual / spread)
+
+
+def _frame_mse(predicted, truth) -> Array:
+    return jnp.mean((predicted - truth) ** 2, axis=(-3, -2, -1))
+
+
+def prediction_threshold(images: Float[ArrayLike, "*runs T H W C"]) -> float:
+    """The error threshold of the valid prediction time: the mean squared error of a static
+    prediction by the dataset's mean image (paper section 4).
+
+    $\\varepsilon = \\operatorname{mean}_{r, i} \\operatorname{MSE}(z_{r,i}, \\bar z)$ with $\\bar z$ the
+    mean of all frames of all runs: a model that predicts no motion scores this.
+
+    **Arguments:**
+
+    - `images`: every frame of the (validation) dataset, values in `[0, 1]`, e.g. `(R, T, H, W, 3)`.
+
+    **Returns:** `epsilon`, a float.
+
+    !!! example
+
+        ```python
+        epsilon = keyvision.prediction_threshold(validation.images())
+        ```
+    """
+    images = jnp.asarray(images)
+    if images.ndim < 4:
+        raise ValueError(f"prediction_threshold: images must be (..., T, H, W, C), got {images.shape}")
+    flat = images.reshape(-1, *images.shape[-3:])
+    return float(jnp.mean(_frame_mse(flat, jnp.mean(flat, axis=0, keepdims=True))))
+
+
+def valid_prediction_time(
+    predicted: Float[ArrayLike, "*runs T H W C"],
+    truth: Float[ArrayLike, "*runs T H W C"],
+    *,
+    threshold: float | None = None,
+) -> Float[Array, "*runs"]:
+    """The valid prediction time (VPT, eq. 16) of predicted frames: the index of the first frame
+    whose mean squared error exceeds the threshold, as a fraction of the `T` frames.
+
+    $\\mathrm{VPT} = \\frac{1}{T} \\min \\{ i : \\operatorname{MSE}(z'_i, z_i) > \\varepsilon \\}$, and 1
+    when no frame exceeds it (Table 1 of the paper reports this fraction). This is the image-space
+    metric of the paper; `cldyn.valid_prediction_time` is its state-space counterpart (a distance
+    between keypoints, not a pixel error).
+
+    **Arguments:**
+
+    - `predicted`, `truth`: frames with values in `[0, 1]`, shape `(..., T, H, W, C)`.
+    - `threshold`: `epsilon`; by default `prediction_threshold(truth)`, right when `truth` is the
+      whole validation set.
+
+    **Returns:** the VPT of every run, shape `(...)`, between 0 and 1.
+
+    !!! example
+
+        ```python
+        predicted = jax.vmap(keyvision.predict, in_axes=(None, 0, 0, None))(model, images, u, dt)
+        vpt = keyvision.valid_prediction_time(predicted, images)   # (R,)
+        ```
+    """
+    predicted, truth = jnp.asarray(predicted), jnp.asarray(truth)
+    if predicted.shape != truth.shape or predicted.ndim < 4:
+        raise ValueError(
+            "valid_prediction_time: predicted and truth must have the same shape (..., T, H, W, C), "
+            f"got {predicted.shape} and {truth.shape}"
+        )
+    epsilon = prediction_threshold(truth) if threshold is None else float(threshold)
+    if not epsilon > 0:
+        raise ValueError(f"valid_prediction_time: the threshold must be positive, got {epsilon}")
+    exceeded = _frame_mse(predicted, truth) > epsilon
+    samples = exceeded.shape[-1]
+    first = jnp.where(jnp.any(exceeded, axis=-1), jnp.argmax(exceeded, axis=-1), samples)
+    return first / samples
+
+
+def predict(
+    model: KeyCLD,
+    images: Float[ArrayLike, "T H W C"],
+    controls: Float[ArrayLike, "T l"],
+    dt: float,
+    *,
+    solver: dfx.AbstractSolver = cldyn.RK4(),
+    stabilisation: cldyn.AbstractStabilisation | None = cldyn.Projection(),
+) -> Float[Array, "T H W 3"]:
+    """Predict the frames of a run from its first three: encode, integrate the dynamics, render.
+
+    The first three frames are encoded; the state at frame 1 is the keypoints and their central
+    difference $(x_2 - x_0) / 2h$ (eq. 11), projected onto the constraint tangent space, and
+    `cldyn.rollout` integrates it with the run's controls held between frames (`solver`, with
+    `stabilisation` keeping the constraints at the values measured at frame 1, not at fixed
+    lengths). Frame 0 of the result is the reconstruction of frame 0; frames `1 .. T-1` are
+    rendered from the rollout. One run in, one out: `jax.vmap` it over runs.
+
+    **Arguments:**
+
+    - `model`: a `keyvision.KeyCLD`.
+    - `images`: the run's `T >= 3` frames, values in `[0, 1]` (only the first three are used).
+    - `controls`: `(T, l)` the controls held from each frame to the next.
+    - `dt`: the time between frames.
+    - `solver`: a diffrax solver; `cldyn.RK4()` (one step per frame) by default.
+    - `stabilisation`: `cldyn.Projection()` by default.
+
+    **Returns:** `(T, H, W, 3)` predicted frames, aligned with `images`.
+
+    !!! example
+
+        ```python
+        images = validation.images()                       # (R, T, 64, 64, 3)
+        predicted = jax.vmap(lambda z, u: keyvision.predict(model, z, u, validation.dt))(
+            images, validation.u)
+        vpt = keyvision.valid_prediction_time(predicted, images)
+        ```
+    """
+    images, controls = jnp.asarray(images), jnp.asarray(controls)
+    if images.ndim != 4 or images.shape[0] < 3:
+        raise ValueError(f"predict: images must be (T, H, W, C) with T >= 3 frames, got {images.shape}")
+    if controls.ndim != 2 or controls.shape[0] != images.shape[0]:
+        raise ValueError(f"predict: controls must be ({images.shape[0]}, l), got {controls.shape}")
+    x = model.encode(images[:3])
+    run = cldyn.rollout(
+        model.dynamics, x[1], (x[2] - x[0]) / (2 * dt), controls[1:].astype(x.dtype), dt,
+        solver=solver, stabilisation=stabilisation, project=True,
+    )
+    return model.decode(jnp.concatenate([x[:1], run.x], axis=0))

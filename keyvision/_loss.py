@@ -1,0 +1,133 @@
+"""The losses of learning from images (paper eq. 10-13): cldyn losses over batches of `ImageSequences`.
+
+Each is a `cldyn.AbstractLoss`, so they add up and scale with cldyn's own losses'
+`+` and `*` (`Reconstruction() + 0.1 * KeypointDynamics(cldyn.Collocation())`) and train through
+`cldyn.fit`. The dynamics term wraps any cldyn loss rather than copying one: the frames of the batch
+are encoded and the wrapped loss sees a `cldyn.Sequences` of the keypoints.
+"""
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+from jaxtyping import Array
+
+from cldyn import AbstractLoss, Sequences
+
+from ._data import ImageSequences
+from ._estimator import KeypointEstimator
+from ._keypoints import gaussian_maps, spatial_softmax
+from ._model import KeyCLD, parameter_dtype
+
+# `log(1 - h)` is clamped where the normalised heatmap reaches 1 (at its own maximum): the binary
+# cross-entropy stays finite, and so does its gradient (no `inf * 0`).
+_LOG_FLOOR = 1e-6
+
+
+def _images(model: KeyCLD, batch: ImageSequences) -> Array:
+    if not isinstance(batch, ImageSequences):
+        raise TypeError(f"image losses take a keyvision.ImageSequences batch, got {type(batch).__name__}")
+    return batch.images(parameter_dtype(model.estimator))
+
+
+class Reconstruction(AbstractLoss):
+    """The reconstruction loss (eq. 10): every frame is encoded to keypoints and rendered back,
+    $L_r = \\operatorname{mean} \\lVert z'_i - z_i \\rVert^2$ over frames, pixels and colour channels
+    (eq. 10 sums over the frames; the mean keeps the weights of a sum of losses independent of the
+    batch and the image size).
+
+    !!! example
+
+        ```python
+        loss = keyvision.Reconstruction() + 0.1 * keyvision.KeypointDynamics(cldyn.Collocation())
+        value = loss(model, batch)   # model: keyvision.KeyCLD, batch: keyvision.ImageSequences
+        ```
+    """
+
+    def __call__(self, model: KeyCLD, batch: ImageSequences) -> Array:
+        images = _images(model, batch)
+        reconstructed = model.decode(model.encode(images))
+        return jnp.mean((reconstructed - images) ** 2)
+
+
+class KeypointDynamics(AbstractLoss):
+    """A cldyn dynamics loss on the encoded keypoints: the frames of each run are encoded
+    (`KeyCLD.encode`) and `loss` is applied to `model.dynamics` with the keypoints, the controls and
+    the frame interval as a `cldyn.Sequences`. Gradients reach the estimator through the keypoints.
+
+    With `cldyn.Collocation()` this is the paper's $L_d$ (eq. 11-13); `cldyn.Rollout(steps=4)` is the
+    multi-step explicit-Euler loss of the authors' later code.
+
+    **Arguments:**
+
+    - `loss`: any cldyn loss over `Sequences`, e.g. `cldyn.Collocation()`, `cldyn.Rollout()`, or a
+      weighted sum of them.
+
+    !!! example
+
+        ```python
+        loss = keyvision.Reconstruction() + 0.1 * keyvision.KeypointDynamics(cldyn.Collocation())
+        ```
+    """
+
+    loss: AbstractLoss
+
+    def __check_init__(self):
+        if not isinstance(self.loss, AbstractLoss):
+            raise TypeError(f"KeypointDynamics wraps a cldyn loss, got {type(self.loss).__name__}")
+
+    def __call__(self, model: KeyCLD, batch: ImageSequences) -> Array:
+        x = model.encode(_images(model, batch))
+        keypoints = Sequences(x, jnp.asarray(batch.u).astype(x.dtype), batch.dt)
+        return self.loss(model.dynamics, keypoints)
+
+
+class HeatmapRegulariser(AbstractLoss):
+    """Binary cross-entropy of each heatmap against a Gaussian blob at its own keypoint.
+
+    Reconstruction alone lets a keypoint's heatmap spread over the image (its spatial softmax then
+    lands between objects) or sit on the background. This term pulls each heatmap towards a single
+    blob: with $h_k = e^{s_k - \\max s_k}$ the heatmap normalised to a peak of 1 (the spatial softmax
+    divided by its maximum) and $g_k$ the Gaussian map (eq. 9) at the heatmap's own keypoint
+    (eq. 8; a fixed target, no gradient through it),
+
+    $$L_h = -\\operatorname{mean}_{k, p}\\big[g_k(p) \\log h_k(p) + (1 - g_k(p)) \\log(1 - h_k(p))\\big].$$
+
+    Needs an estimator with heatmaps (`keyvision.KeypointEstimator`).
+
+    **Arguments:**
+
+    - `sigma`: the standard deviation of the target blobs in image-frame units (0.1, the
+      renderer's, by default).
+
+    !!! example
+
+        ```python
+        loss = keyvision.Reconstruction() + 0.01 * keyvision.HeatmapRegulariser()
+        ```
+    """
+
+    sigma: float = eqx.field(static=True, default=0.1)
+
+    def __check_init__(self):
+        if not self.sigma > 0:
+            raise ValueError(f"HeatmapRegulariser: sigma must be positive, got {self.sigma}")
+
+    def __call__(self, model: KeyCLD, batch: ImageSequences) -> Array:
+        if not isinstance(model.estimator, KeypointEstimator):
+            raise TypeError(
+                "HeatmapRegulariser needs an estimator with heatmaps (keyvision.KeypointEstimator), got "
+                f"{type(model.estimator).__name__}"
+            )
+        images = _images(model, batch)
+        images = images.reshape(-1, *images.shape[-3:])
+        return jnp.mean(jax.vmap(lambda image: self._one(model.estimator, image))(images))
+
+    def _one(self, estimator: KeypointEstimator, image: Array) -> Array:
+        logits = estimator.heatmaps(image)
+        _, height, width = logits.shape
+        centres = jax.lax.stop_gradient(spatial_softmax(logits))
+        target = gaussian_maps(centres, height, width, sigma=self.sigma)
+        z = logits - jnp.max(logits, axis=(1, 2), keepdims=True)  # log h <= 0
+        log_h = jnp.maximum(z, -100.0)
+        log_one_minus_h = jnp.log(-jnp.expm1(jnp.minimum(z, -_LOG_FLOOR)))
+        return -jnp.mean(target * log_h + (1 - target) * log_one_minus_h)

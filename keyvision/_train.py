@@ -1,0 +1,270 @@
+"""Training KeyCLD from images in stages, each one call of `cldyn.fit` (no second training loop).
+
+Joint training from scratch is slow on a CPU and reconstruction alone does not place the
+keypoints, so the recipe has three stages: (a) the autoencoder (estimator and renderer) on single
+frames, (b) the dynamics on the keypoints of the frozen estimator (cheap: no images involved), and
+(c) everything jointly on short windows of frames.
+"""
+
+import dataclasses
+import json
+import os
+import pathlib
+from collections.abc import Sequence
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+import optax
+from jaxtyping import Array, PRNGKeyArray
+
+import cldyn
+from cldyn._misc import atomic_write, check_positive
+
+from ._data import ImageSequences, as_images
+from ._loss import HeatmapRegulariser, KeypointDynamics, Reconstruction
+from ._model import KeyCLD, parameter_dtype
+
+_SCHEMA = "keyvision.Train/1"
+_STAGES = ("autoencoder", "dynamics", "joint")
+_ENCODE_FRAMES = 256  # frames per call when encoding a dataset: bounds the memory of the activations
+
+
+@dataclasses.dataclass(frozen=True)
+class Schedule:
+    """The staged training recipe of `keyvision.train`.
+
+    **Fields:**
+
+    - `autoencoder_steps`: steps of stage (a), estimator and renderer on single frames with
+      `Reconstruction() + heatmap_weight * HeatmapRegulariser()`; the dynamics stay frozen.
+    - `autoencoder_batch`: frames per step of stage (a).
+    - `dynamics_steps`: steps of stage (b), the dynamics alone fitted to the keypoints of the frozen
+      estimator with `dynamics_loss`.
+    - `dynamics_batch`: runs of keypoints per step of stage (b) (at most the number of runs).
+    - `joint_steps`: steps of stage (c), everything trained with `Reconstruction() +
+      heatmap_weight * HeatmapRegulariser() + dynamics_weight * KeypointDynamics(dynamics_loss)`.
+    - `joint_batch`, `window`: windows per step, and frames per window, of stage (c).
+    - `dynamics_loss`: a cldyn loss; `cldyn.Collocation()` (eq. 11-13) by default.
+    - `dynamics_weight`: the weight `lambda` of the dynamics loss in stage (c).
+    - `heatmap_weight`: the weight of the heatmap regulariser (0 leaves it out, as the FC estimator
+      needs).
+    - `learning_rate`: Adam's learning rate for the networks (after element-wise gradient clipping
+      at 5); `dynamics_learning_rate` for stage (b).
+    - `log_every`, `checkpoint_every`: as in `cldyn.fit`, for every stage.
+
+    !!! example
+
+        ```python
+        schedule = keyvision.Schedule(autoencoder_steps=3000, dynamics_steps=2000, joint_steps=1000)
+        ```
+    """
+
+    autoencoder_steps: int = 2000
+    autoencoder_batch: int = 64
+    dynamics_steps: int = 2000
+    dynamics_batch: int = 32
+    joint_steps: int = 1000
+    joint_batch: int = 8
+    window: int = 10
+    dynamics_loss: cldyn.AbstractLoss = cldyn.Collocation()
+    dynamics_weight: float = 1e-3
+    heatmap_weight: float = 0.1
+    learning_rate: float = 1e-3
+    dynamics_learning_rate: float = 1e-3
+    log_every: int = 50
+    checkpoint_every: int = 500
+
+    def __post_init__(self):
+        for name in ("autoencoder_steps", "dynamics_steps", "joint_steps"):
+            check_positive(f"Schedule: {name}", getattr(self, name), integer=True, allow_zero=True)
+        for name in ("autoencoder_batch", "dynamics_batch", "joint_batch", "window", "log_every",
+                     "checkpoint_every"):
+            check_positive(f"Schedule: {name}", getattr(self, name), integer=True)
+        for name in ("learning_rate", "dynamics_learning_rate"):
+            check_positive(f"Schedule: {name}", getattr(self, name))
+        for name in ("dynamics_weight", "heatmap_weight"):
+            check_positive(f"Schedule: {name}", getattr(self, name), allow_zero=True)
+        if not isinstance(self.dynamics_loss, cldyn.AbstractLoss):
+            raise TypeError(f"Schedule: dynamics_loss must be a cldyn loss, got {self.dynamics_loss!r}")
+
+    def describe(self) -> dict:
+        """The schedule as JSON-able values (the loss as its description)."""
+        described = dataclasses.asdict(self)
+        described["dynamics_loss"] = eqx.tree_pformat(self.dynamics_loss)
+        return described
+
+
+@dataclasses.dataclass(frozen=True)
+class TrainResult:
+    """What `keyvision.train` returns.
+
+    **Fields:**
+
+    - `model`: the trained `KeyCLD`.
+    - `stages`: the `cldyn.FitResult` of every stage that ran, by name (`"autoencoder"`,
+      `"dynamics"`, `"joint"`), with its history and settings (the key of each stage among them).
+    """
+
+    model: KeyCLD
+    stages: dict
+
+
+@eqx.filter_jit
+def _encode_chunk(model: KeyCLD, frames: Array) -> Array:
+    return model.encode(as_images(frames, parameter_dtype(model.estimator)))
+
+
+def encode_sequences(model: KeyCLD, data: ImageSequences) -> cldyn.Sequences:
+    """The keypoints of every frame of `data` as a `cldyn.Sequences` (with the controls and `dt`).
+
+    Frames are encoded a few hundred at a time, so a whole dataset fits in memory.
+
+    **Arguments:**
+
+    - `model`: a `keyvision.KeyCLD`.
+    - `data`: `keyvision.ImageSequences`.
+
+    **Returns:** `cldyn.Sequences` with `x` `(runs, T, 2K)` in the image frame.
+
+    !!! example
+
+        ```python
+        keypoints = keyvision.encode_sequences(model, data)
+        result = cldyn.fit(model.dynamics, keypoints, loss=cldyn.Collocation(), steps=2000, key=key)
+        ```
+    """
+    runs, samples = data.num_runs, data.num_samples
+    chunk = max(1, min(runs, _ENCODE_FRAMES // samples))
+    padded = -runs % chunk
+    frames = np.asarray(data.frames)
+    if padded:
+        frames = np.concatenate([frames, np.repeat(frames[-1:], padded, axis=0)], axis=0)
+    parts = [_encode_chunk(model, frames[i : i + chunk]) for i in range(0, runs + padded, chunk)]
+    x = np.concatenate([np.asarray(part) for part in parts], axis=0)[:runs]
+    return cldyn.Sequences(x, np.asarray(data.u).astype(x.dtype), data.dt)
+
+
+def _networks_only(model: KeyCLD):
+    spec = jax.tree.map(eqx.is_inexact_array, model)
+    return eqx.tree_at(lambda m: m.dynamics, spec, replace=False)
+
+
+def _adam(learning_rate: float) -> optax.GradientTransformation:
+    return optax.chain(optax.clip(5.0), optax.adam(learning_rate))
+
+
+def _key_data(key) -> list[int]:
+    if jnp.issubdtype(key.dtype, jax.dtypes.prng_key):
+        key = jax.random.key_data(key)
+    return [int(v) for v in np.asarray(key).reshape(-1)]
+
+
+def train(
+    model: KeyCLD,
+    data: ImageSequences,
+    *,
+    key: PRNGKeyArray,
+    schedule: Schedule = Schedule(),
+    validation: ImageSequences | None = None,
+    out: "str | os.PathLike | None" = None,
+    resume: bool = False,
+    progress_meter: cldyn.AbstractProgressMeter = cldyn.NoProgressMeter(),
+    devices: Sequence[jax.Device] | None = None,
+) -> TrainResult:
+    """Train a KeyCLD model on frames, unsupervised, in three stages of `cldyn.fit`.
+
+    1. `"autoencoder"`: the estimator and the renderer on single frames (reconstruction, eq. 10,
+       plus the heatmap regulariser); the dynamics are frozen.
+    2. `"dynamics"`: the frames are encoded once by the frozen estimator
+       (`keyvision.encode_sequences`) and the dynamics model is fitted to the keypoints with
+       `schedule.dynamics_loss` (collocation, eq. 11-13: seconds, no images involved).
+    3. `"joint"`: everything on windows of `schedule.window` frames with
+       $L = L_r + \\lambda L_d$ (plus the regulariser), $L_d$ on the encoded keypoints.
+
+    Each stage is one `fit` with its own key (split from `key`) and its own files in `out`
+    (`checkpoint-<stage>.eqx`, `history-<stage>.json`, `model-<stage>.eqx`), float32, the batch sharded
+    over `devices`. With `resume=True` a restarted call skips the finished stages and resumes the
+    interrupted one bitwise. `out/train.json` records the key and the schedule.
+
+    **Arguments:**
+
+    - `model`: the `keyvision.KeyCLD` to train.
+    - `data`: the training `keyvision.ImageSequences`.
+    - `key`: a `jax.random` key for the batches.
+    - `schedule`: a `keyvision.Schedule` (steps, batches, weights, learning rates).
+    - `validation`: held-out `ImageSequences` whose loss is recorded at every validation point;
+      keep it small (a few runs): it is evaluated in one call.
+    - `out`: the output directory, or `None` to write nothing.
+    - `resume`: continue from the checkpoints in `out`.
+    - `progress_meter`: e.g. `cldyn.TextProgressMeter()`.
+    - `devices`: the devices to shard the batch over (all local devices by default).
+
+    **Returns:** a `keyvision.TrainResult` with the model and each stage's `cldyn.FitResult`.
+
+    !!! example
+
+        ```python
+        train, validation = keyvision.render("keycld/pendulum").split()
+        result = keyvision.train(model, keyvision.ImageSequences.from_frames(train),
+                                 key=jax.random.key(0), out="runs/pendulum", resume=True,
+                                 progress_meter=cldyn.TextProgressMeter())
+        ```
+    """
+    if not isinstance(model, KeyCLD):
+        raise TypeError(f"train: model must be a keyvision.KeyCLD, got {type(model).__name__}")
+    if not isinstance(data, ImageSequences):
+        raise TypeError(f"train: data must be keyvision.ImageSequences, got {type(data).__name__}")
+    if not isinstance(schedule, Schedule):
+        raise TypeError(f"train: schedule must be a keyvision.Schedule, got {type(schedule).__name__}")
+    keys = dict(zip(_STAGES, jax.random.split(key, len(_STAGES))))
+    if out is not None:
+        out = pathlib.Path(out)
+        out.mkdir(parents=True, exist_ok=True)
+        record = {"schema": _SCHEMA, "key": _key_data(key), "schedule": schedule.describe()}
+        atomic_write(out / "train.json", json.dumps(record, indent=1))
+    common = {
+        "out": out,
+        "resume": resume,
+        "progress_meter": progress_meter,
+        "devices": devices,
+        "log_every": schedule.log_every,
+        "validate_every": schedule.checkpoint_every,
+        "checkpoint_every": schedule.checkpoint_every,
+    }
+    images_loss = Reconstruction()
+    if schedule.heatmap_weight > 0:
+        images_loss = images_loss + schedule.heatmap_weight * HeatmapRegulariser()
+    stages = {}
+
+    if schedule.autoencoder_steps:
+        stages["autoencoder"] = cldyn.fit(
+            model, data, loss=images_loss, steps=schedule.autoencoder_steps, key=keys["autoencoder"],
+            optimizer=_adam(schedule.learning_rate), batching=cldyn.Windows(schedule.autoencoder_batch, 1),
+            validation=validation, trainable=_networks_only, stage="autoencoder", **common,
+        )
+        model = stages["autoencoder"].model
+
+    if schedule.dynamics_steps:
+        keypoints = encode_sequences(model, data)
+        stages["dynamics"] = cldyn.fit(
+            model.dynamics, keypoints, loss=schedule.dynamics_loss, steps=schedule.dynamics_steps,
+            key=keys["dynamics"], optimizer=_adam(schedule.dynamics_learning_rate),
+            batching=cldyn.Runs(min(schedule.dynamics_batch, keypoints.num_runs)),
+            validation=None if validation is None else encode_sequences(model, validation),
+            stage="dynamics", **common,
+        )
+        model = eqx.tree_at(lambda m: m.dynamics, model, stages["dynamics"].model)
+
+    if schedule.joint_steps:
+        loss = images_loss + schedule.dynamics_weight * KeypointDynamics(schedule.dynamics_loss)
+        stages["joint"] = cldyn.fit(
+            model, data, loss=loss, steps=schedule.joint_steps, key=keys["joint"],
+            optimizer=_adam(schedule.learning_rate),
+            batching=cldyn.Windows(schedule.joint_batch, schedule.window),
+            validation=validation, stage="joint", **common,
+        )
+        model = stages["joint"].model
+    return TrainResult(model=model, stages=stages)
+

@@ -1,0 +1,166 @@
+"""keyvision's model, losses, staged training and evaluation: closed forms for the valid prediction time
+and the heatmap regulariser, the dynamics loss on encoded keypoints against the cldyn loss applied by
+hand, and a tiny end-to-end training on synthetic pendulum frames (a disc on a circle) with resume."""
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import cldyn
+import keyvision
+
+EXACT = 1e-9  # float64 values computed along two routes by the same operations in another order
+VPT_FRACTION_TOL = 1e-12
+SIZE = 16  # pixels: small enough for a CPU test
+WIDTH = 8  # channels of the U-Nets
+DT = 0.1  # seconds between frames
+PERIOD = 1.5  # seconds, of small oscillations of the synthetic pendulum
+LENGTH = 0.6  # image-frame units from the image centre to the disc's centre
+RADIUS = 0.2  # of the disc, image-frame units
+
+
+def _cast(tree, dtype):
+    return jax.tree.map(lambda a: a.astype(dtype) if eqx.is_inexact_array(a) else a, tree)
+
+
+def _model(key, *, width=WIDTH, size=SIZE, keypoints=1):
+    keys = jax.random.split(key, 3)
+    constraint = cldyn.keycld_constraint("pendulum") if keypoints == 1 else None
+    return _cast(
+        keyvision.KeyCLD(
+            keyvision.KeypointEstimator(keypoints, width=width, image_size=size, key=keys[0]),
+            cldyn.keycld_model(2 * keypoints, 1, constraint, key=keys[1], width=16),
+            keyvision.Renderer(keypoints, width=width, image_size=size, key=keys[2]),
+        ),
+        jnp.float32,
+    )
+
+
+def pendulum_frames(runs, samples, *, size=SIZE, dt=DT, seed=0):
+    """Frames of a disc swinging on a circle about the image centre (a pendulum bob), integrated with
+    numpy's RK4 in the angle, one constant torque per run; returns uint8 frames, controls, angles."""
+    rng = np.random.default_rng(seed)
+    omega2 = (2 * np.pi / PERIOD) ** 2
+    theta, thetad = rng.uniform(-np.pi, np.pi, runs), rng.uniform(-1, 1, runs)
+    u = rng.uniform(-1, 1, runs)
+
+    def f(angle, rate):
+        return rate, -omega2 * np.sin(angle) + 5 * u
+
+    substeps, angles = 20, np.empty((runs, samples))
+    h = dt / substeps
+    for i in range(samples):
+        angles[:, i] = theta
+        for _ in range(substeps):
+            k1 = f(theta, thetad)
+            k2 = f(theta + h / 2 * k1[0], thetad + h / 2 * k1[1])
+            k3 = f(theta + h / 2 * k2[0], thetad + h / 2 * k2[1])
+            k4 = f(theta + h * k3[0], thetad + h * k3[1])
+            theta = theta + h / 6 * (k1[0] + 2 * k2[0] + 2 * k3[0] + k4[0])
+            thetad = thetad + h / 6 * (k1[1] + 2 * k2[1] + 2 * k3[1] + k4[1])
+    bob = LENGTH * np.stack([np.sin(angles), -np.cos(angles)], axis=-1)
+    centres = (2 * np.arange(size) + 1) / size - 1
+    xs, ys = np.meshgrid(centres, -centres)  # row 0 is the top of the image
+    distance = np.hypot(xs - bob[..., 0, None, None], ys - bob[..., 1, None, None])
+    cover = np.clip((RADIUS - distance) * size / 2 + 0.5, 0, 1)  # anti-aliased edge, one pixel wide
+    images = 0.1 + 0.8 * cover[..., None] * np.array([1.0, 0.3, 0.1])
+    controls = np.broadcast_to(u[:, None, None], (runs, samples, 1)).astype(np.float32)
+    return np.round(255 * images).astype(np.uint8), controls, angles
+
+
+# -- valid prediction time ---------------------------------------------------------------------------
+
+
+def test_prediction_threshold_closed_form():
+    # frames alternate between images A and B: the mean image is (A + B) / 2 and every frame's MSE
+    # against it is mean((A - B)^2) / 4
+    rng = np.random.default_rng(0)
+    a, b = rng.uniform(size=(2, 5, 6, 3))
+    frames = np.stack([a, b] * 4)[None].repeat(3, axis=0)  # (3 runs, 8 frames, 5, 6, 3)
+    expected = np.mean((a - b) ** 2) / 4
+    assert keyvision.prediction_threshold(frames) == pytest.approx(expected, rel=1e-12)
+
+
+def test_valid_prediction_time_hand_made():
+    rng = np.random.default_rng(1)
+    truth = rng.uniform(size=(2, 10, 4, 4, 3))
+    flat = truth.reshape(-1, 4, 4, 3)
+    epsilon = np.mean((flat - flat.mean(axis=0)) ** 2)  # the paper's threshold, by numpy
+    # run 0: frame i is off by a constant delta_i with delta_i^2 = epsilon (i + 0.5) / 5, so that
+    # MSE_i = delta_i^2 first exceeds epsilon at frame 5; run 1 is predicted exactly
+    delta = np.sqrt(epsilon * (np.arange(10) + 0.5) / 5)
+    predicted = truth.copy()
+    predicted[0] += delta[:, None, None, None]
+    vpt = keyvision.valid_prediction_time(predicted, truth)
+    np.testing.assert_allclose(vpt, [0.5, 1.0], atol=VPT_FRACTION_TOL)
+    # an explicit threshold: half of it is exceeded from frame 2 on ((2 + 0.5) / 5 = 0.5, not above)
+    vpt = keyvision.valid_prediction_time(predicted, truth, threshold=epsilon / 2)
+    np.testing.assert_allclose(vpt, [0.3, 1.0], atol=VPT_FRACTION_TOL)
+    with pytest.raises(ValueError, match="same shape"):
+        keyvision.valid_prediction_time(predicted[:, :5], truth)
+
+
+# -- model and losses --------------------------------------------------------------------------------
+
+
+def test_keycld_checks_sizes():
+    keys = jax.random.split(jax.random.key(0), 3)
+    estimator = keyvision.KeypointEstimator(2, width=WIDTH, image_size=SIZE, key=keys[0])
+    renderer = keyvision.Renderer(2, width=WIDTH, image_size=SIZE, key=keys[2])
+    with pytest.raises(ValueError, match="coordinates"):
+        keyvision.KeyCLD(estimator, cldyn.keycld_model(2, 1, None, key=keys[1]), renderer)
+    other = keyvision.Renderer(2, width=WIDTH, image_size=2 * SIZE, key=keys[2])
+    with pytest.raises(ValueError, match="pixel"):
+        keyvision.KeyCLD(estimator, cldyn.keycld_model(4, 1, None, key=keys[1]), other)
+
+
+def test_keypoint_dynamics_is_the_cldyn_loss_on_encoded_keypoints():
+    # float64: cldyn.rollout saves at float64 times when JAX's 64-bit mode is on (as in the tests)
+    model = _cast(_model(jax.random.key(2), keypoints=2), jnp.float64)
+    frames, controls, _ = pendulum_frames(3, 8)
+    controls = controls.astype(np.float64)
+    batch = keyvision.ImageSequences(frames, controls, DT)
+    # encoded by hand: the estimator on every frame, keypoints (K, 2) flattened to [x1, y1, x2, y2]
+    images = jnp.asarray(frames, jnp.float64) / 255
+    keypoints = jax.vmap(jax.vmap(model.estimator))(images)
+    assert keypoints.shape == (3, 8, 2, 2)
+    by_hand = cldyn.Sequences(keypoints.reshape(3, 8, 4), jnp.asarray(controls), DT)
+    for loss in (cldyn.Collocation(), cldyn.Rollout(steps=2), cldyn.Collocation() + 0.5 * cldyn.Rollout()):
+        expected = loss(model.dynamics, by_hand)
+        value = keyvision.KeypointDynamics(loss)(model, batch)
+        assert value == pytest.approx(float(expected), rel=EXACT)
+    # the reconstruction loss is the MSE of the rendered keypoints, by hand too
+    rendered = jax.vmap(jax.vmap(model.renderer))(keypoints)
+    expected = jnp.mean((rendered - images) ** 2)
+    assert keyvision.Reconstruction()(model, batch) == pytest.approx(float(expected), rel=EXACT)
+
+
+class _FixedLogits(eqx.Module):
+    logits: jax.Array
+
+    def __call__(self, x):
+        return self.logits
+
+
+def test_heatmap_regulariser_closed_form():
+    # heatmap logits log g of a Gaussian g centred on a pixel centre near the middle (sigma well
+    # inside the image): the spatial softmax lands on the centre, the target is g itself, and the loss
+    # is the mean binary entropy of g (log h clamped at -100, the peak pixel contributing 0)
+    sigma, centre = 0.15, np.array([1 / SIZE, -3 / SIZE])
+    cells = (2 * np.arange(SIZE) + 1) / SIZE - 1
+    xs, ys = np.meshgrid(cells, -cells)
+    log_g = -((xs - centre[0]) ** 2 + (ys - centre[1]) ** 2) / (2 * sigma**2)
+    g = np.exp(log_g)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        entropy = np.where(g < 1, g * np.maximum(log_g, -100) + (1 - g) * np.log1p(-g), 0.0)
+    expected = -np.mean(entropy)
+    model = _model(jax.random.key(3))
+    fixed = _FixedLogits(jnp.asarray(log_g[None], jnp.float32))
+    model = eqx.tree_at(lambda m: m.estimator.unet, model, fixed)
+    batch = keyvision.ImageSequences(np.zeros((1, 1, SIZE, SIZE, 3), np.uint8), None, DT)
+    value = keyvision.HeatmapRegulariser(sigma=sigma)(model, batch)
+    assert value == pytest.approx(expected, rel=1e-4)
+    grads = eqx.filter_grad(lambda m: keyvision.HeatmapRegulariser(sigma=sigma)(m, batch))(model)
+    assert all(bool(jnp.all(jnp.isfinite(g))) for g in jax.tree.leaves(eqx.filter(grads, eqx.is_array)))
