@@ -55,6 +55,7 @@ def test_help_shows_the_defaults(command, capsys):
     assert status == 0
     assert out.startswith(f"usage: cldyn {command}")
     assert "(default: " in out and "%%" not in out
+    assert "(default: True)" not in out and "(default: False)" not in out  # flags say what they do
 
 
 @pytest.mark.parametrize("command", COMMANDS)

@@ -32,7 +32,8 @@ class Formatter(argparse.HelpFormatter):
     def _get_help_string(self, action: argparse.Action) -> str:
         text = action.help or ""
         default = action.default
-        shown = default is not None and default is not False and default != [] and default != ()
+        # flags (nargs 0) say what they do: "--no-progress (default: True)" would read backwards
+        shown = default is not None and action.nargs != 0 and default != [] and default != ()
         if shown and default is not argparse.SUPPRESS and action.option_strings and "default" not in text:
             text += " (default: %(default)s)"
         return text

@@ -41,7 +41,11 @@ def register(subparsers) -> None:
         "--integrator", choices=INTEGRATORS, default=None, help="MuJoCo's integrator (default: the model's)"
     )
     parser.add_argument(
-        "--keypoints", nargs="+", default=None, metavar="SITE", help="sites to use as keypoints"
+        "--keypoints",
+        nargs="+",
+        default=None,
+        metavar="SITE",
+        help="sites to use as keypoints (default: from_mjcf's, the moving joints' anchors and tips)",
     )
     parser.add_argument(
         "--control-range",

@@ -47,7 +47,11 @@ def register(subparsers) -> None:
         help="passive effects to model: damping, stiffness, armature (default: none)",
     )
     parser.add_argument(
-        "--keypoints", nargs="+", default=None, metavar="SITE", help="sites to use as keypoints"
+        "--keypoints",
+        nargs="+",
+        default=None,
+        metavar="SITE",
+        help="sites to use as keypoints (default: from_mjcf's, the moving joints' anchors and tips)",
     )
     parser.add_argument("--runs", type=positive(integer=True), default=10, help="number of runs")
     parser.add_argument("--duration", type=positive(), default=2.0, help="seconds per run")
@@ -63,7 +67,7 @@ def register(subparsers) -> None:
         "--tolerance",
         type=positive(),
         default=None,
-        help="exit with status 1 if the max position error exceeds this (metres)",
+        help="exit with status 1 if the max position error exceeds this (metres; default: no check)",
     )
     add_overwrite(parser, "validation.json and the plot")
     parser.set_defaults(run=run)
