@@ -9,6 +9,7 @@ import shlex
 import stat
 import sys
 
+import equinox as eqx
 import jax
 import numpy as np
 import pytest
@@ -326,6 +327,16 @@ def test_control(tmp_path, capsys):
     # the controller needs every joint actuated: the stock acrobot is refused by name
     status, _, err = _run(capsys, ["control", "--mjcf", "acrobot", "--out", str(tmp_path / "a")])
     assert status == 2 and "cldyn control: error: swing_up needs a fully actuated scene" in err
+    # and a model with an energy: a NODE2 fit (fit.json and model.eqx as cldyn fit writes them) is refused
+    spec = {"kind": "node2", "size": 2, "num_inputs": 1, "constraint": None, "width": 4, "depth": 1}
+    node2 = tmp_path / "node2"
+    node2.mkdir()
+    (node2 / "fit.json").write_text(json.dumps({"model": spec, "dtype": "float64"}))
+    eqx.tree_serialise_leaves(node2 / "model.eqx", cldyn.model_from_spec(spec, key=jax.random.key(0)))
+    argv = ["control", "--mjcf", "keycld/pendulum", "--out", str(tmp_path / "n"), "--model", str(node2)]
+    status, _, err = _run(capsys, argv)
+    assert status == 2 and "cldyn control: error: swing_up needs a ConstrainedLagrangian" in err
+    assert not (tmp_path / "n").exists()
 
 
 @pytest.mark.mujoco

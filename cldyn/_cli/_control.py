@@ -54,7 +54,7 @@ def run(args: argparse.Namespace) -> int:
         # trained in float32; the controller runs beside MuJoCo in float64
         system = jax.tree_util.tree_map(lambda a: a.astype(float) if hasattr(a, "astype") else a, system)
         if args.mjcf.startswith("keycld/"):
-            origin = keycld_origin(args.mjcf.removeprefix("keycld/"))
+            origin = tuple(float(v) for v in keycld_origin(args.mjcf.removeprefix("keycld/")))
     started = time.perf_counter()
     result = swing_up(
         args.mjcf,

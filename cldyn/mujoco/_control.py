@@ -11,6 +11,7 @@ from .._control import EnergyShaping
 from .._data import Sequences
 from .._misc import atomic_save, check_positive, optional_import
 from .._progress import AbstractProgressMeter, NoProgressMeter
+from .._system import ConstrainedLagrangian
 from ._bridge import MujocoModel, from_mjcf
 from ._record import record
 from ._scenes import load_model
@@ -152,6 +153,17 @@ def swing_up(
     shift = np.zeros(2) if origin is None else np.asarray(origin, dtype=float)
     target_world = np.asarray(bridge.joints.keypoints(jnp.asarray(upright)))
     model = bridge.system if system is None else system
+    if not isinstance(model, ConstrainedLagrangian):  # energy shaping needs a mass matrix and a potential
+        raise ValueError(
+            f"swing_up needs a ConstrainedLagrangian (KeyCLD, KeyCLD-NC) for energy shaping, got "
+            f"{type(model).__name__}"
+        )
+    if (model.size, model.num_inputs) != (bridge.system.size, bridge.system.num_inputs):
+        raise ValueError(
+            f"the system has {model.size} coordinates and {model.num_inputs} inputs, but {mjcf}'s keypoints "
+            f"{list(bridge.keypoint_names)} give {bridge.system.size} and its actuators "
+            f"{bridge.system.num_inputs}"
+        )
     target = jnp.asarray(target_world - np.tile(shift, len(bridge.keypoint_names)), dtype=float)
     controller = EnergyShaping(model, target.astype(model.mass.matrix().dtype), kp, kd, damping=damping)
     rng = np.random.default_rng(seed)
