@@ -257,6 +257,12 @@ def test_fit_resume_overwrite_and_interrupt(tmp_path, capsys, monkeypatch, stand
     assert spec["model"]["width"] == 16 and spec["previous"]["model"]["width"] == 8
     assert spec["model"]["constraint"] == "pendulum"
 
+    # a replacing fit that diverges leaves that one loadable too
+    diverging = common + ["--steps", "6", "--width", "8", "--lr", "1e30", "--overwrite"]
+    status, _, err = _run(capsys, diverging)
+    assert status == 2 and "cldyn fit: error: fit: non-finite loss or gradient at step" in err
+    assert cldyn.load_fit(out)[1]["model"]["width"] == 16
+
     # a KeyCLD model without constraints, or with a scene's constraints that do not fit the data,
     # is an expected failure before any training, not a traceback
     for extra, message in (([], "needs a constraint"), (["--constraint", "acrobot"], "--constraint acrobot")):
