@@ -21,10 +21,13 @@ import tempfile
 
 import numpy as np
 import pytest
-from hypothesis import HealthCheck, given, settings, strategies as st
 
-import cldyn
-from cldyn._cli import build_parser, main
+pytest.importorskip("hypothesis")  # the dev extra
+
+from hypothesis import HealthCheck, given, settings, strategies as st  # noqa: E402
+
+import cldyn  # noqa: E402
+from cldyn._cli import build_parser, main  # noqa: E402
 
 EXAMPLES = int(os.environ.get("CLDYN_FUZZ_EXAMPLES", "30"))
 
