@@ -14,6 +14,7 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
+from jaxtyping import PyTree
 
 from ._custom_types import Scalar
 from ._data import Sequences, central_difference
@@ -59,11 +60,13 @@ def _squared_norm(residual):
 class AbstractLoss(eqx.Module):
     """A training loss `loss(model, batch) -> scalar` over a batch of `Sequences`.
 
-    Losses add up and scale: `Collocation() + 0.1 * Rollout()` is a `LossSum`.
+    Losses add up and scale: `Collocation() + 0.1 * Rollout()` is a `LossSum`. The losses here take
+    an `AbstractDynamics` and `Sequences`; other packages' losses take other models and batches
+    (keyvision's take a model of images and batches of frames) and combine the same way.
     """
 
     @abc.abstractmethod
-    def __call__(self, model: AbstractDynamics, batch: Sequences) -> Scalar:
+    def __call__(self, model: PyTree, batch: PyTree) -> Scalar:
         """The loss of `model` on `batch`, a scalar."""
 
     def __add__(self, other: "AbstractLoss") -> "LossSum":
@@ -104,7 +107,7 @@ class LossSum(AbstractLoss):
             if not isinstance(loss, AbstractLoss) or not np.isfinite(weight):
                 raise ValueError(f"LossSum takes (finite weight, loss) pairs, got ({weight}, {loss})")
 
-    def __call__(self, model: AbstractDynamics, batch: Sequences) -> Scalar:
+    def __call__(self, model: PyTree, batch: PyTree) -> Scalar:
         return sum(weight * loss(model, batch) for weight, loss in self.terms)
 
 

@@ -142,8 +142,8 @@ def encode_sequences(model: KeyCLD, data: ImageSequences) -> cldyn.Sequences:
     if padded:
         frames = np.concatenate([frames, np.repeat(frames[-1:], padded, axis=0)], axis=0)
     parts = [_encode_chunk(model, frames[i : i + chunk]) for i in range(0, runs + padded, chunk)]
-    x = np.concatenate([np.asarray(part) for part in parts], axis=0)[:runs]
-    return cldyn.Sequences(x, np.asarray(data.u).astype(x.dtype), data.dt)
+    x = jnp.concatenate(parts, axis=0)[:runs]
+    return cldyn.Sequences(x, jnp.asarray(data.u).astype(x.dtype), data.dt)
 
 
 def _networks_only(model: KeyCLD):

@@ -2,6 +2,8 @@
 and the heatmap regulariser, the dynamics loss on encoded keypoints against the cldyn loss applied by
 hand, and a tiny end-to-end training on synthetic pendulum frames (a disc on a circle) with resume."""
 
+import dataclasses
+
 import equinox as eqx
 import jax
 import jax.numpy as jnp
@@ -164,3 +166,72 @@ def test_heatmap_regulariser_closed_form():
     assert value == pytest.approx(expected, rel=1e-4)
     grads = eqx.filter_grad(lambda m: keyvision.HeatmapRegulariser(sigma=sigma)(m, batch))(model)
     assert all(bool(jnp.all(jnp.isfinite(g))) for g in jax.tree.leaves(eqx.filter(grads, eqx.is_array)))
+
+
+# -- training ----------------------------------------------------------------------------------------
+
+RUNS, SAMPLES = 16, 16
+SCHEDULE = keyvision.Schedule(
+    autoencoder_steps=60, autoencoder_batch=32, dynamics_steps=1000, dynamics_batch=8, joint_steps=20,
+    joint_batch=4, window=8, dynamics_weight=1e-4, heatmap_weight=0.0, learning_rate=3e-3,
+    dynamics_learning_rate=1e-2, log_every=10, checkpoint_every=1000,
+)
+RECONSTRUCTION_GAIN = 0.25  # the trained reconstruction error is at most this fraction of the initial
+DYNAMICS_GAIN = 0.9  # the same for the collocation loss of the dynamics on the frozen keypoints
+TRACKING_R2 = 0.8  # an affine map of the learned keypoint explains this much of (sin, cos) of the angle
+
+
+@eqx.filter_jit
+def _reconstruction(model, data):
+    return keyvision.Reconstruction()(model, data)
+
+
+def _assert_bitwise_equal(a, b):
+    leaves_a = jax.tree.leaves(eqx.filter(a, eqx.is_array))
+    leaves_b = jax.tree.leaves(eqx.filter(b, eqx.is_array))
+    for x, y in zip(leaves_a, leaves_b, strict=True):
+        np.testing.assert_array_equal(np.asarray(x), np.asarray(y))
+
+
+@pytest.fixture(scope="module")
+def trained(tmp_path_factory):
+    frames, controls, angles = pendulum_frames(RUNS, SAMPLES)
+    data = keyvision.ImageSequences(frames, controls, DT)
+    model = _model(jax.random.key(0))
+    out = tmp_path_factory.mktemp("keycld")
+    result = keyvision.train(model, data, key=jax.random.key(1), schedule=SCHEDULE, out=out)
+    return model, data, angles, result
+
+
+def test_training_lowers_reconstruction_and_dynamics_losses(trained):
+    model, data, angles, result = trained
+    assert set(result.stages) == {"autoencoder", "dynamics", "joint"}
+    before, after = _reconstruction(model, data), _reconstruction(result.model, data)
+    assert after < RECONSTRUCTION_GAIN * before
+    # stage (b) fitted the dynamics to the keypoints of the frozen autoencoder
+    keypoints = keyvision.encode_sequences(result.stages["autoencoder"].model, data)
+    initial = cldyn.Collocation()(model.dynamics, keypoints)
+    fitted = cldyn.Collocation()(result.stages["dynamics"].model, keypoints)
+    assert fitted < DYNAMICS_GAIN * initial
+    # the keypoint follows the disc: the pose is an affine function of it
+    estimated = np.asarray(eqx.filter_jit(keyvision.KeyCLD.encode)(result.model, data.images()))
+    pose = np.stack([np.sin(angles), np.cos(angles)], axis=-1)
+    assert keyvision.keypoint_tracking(estimated, pose) > TRACKING_R2
+    # only the networks trained in stage (a); the dynamics were frozen
+    _assert_bitwise_equal(result.stages["autoencoder"].model.dynamics, model.dynamics)
+
+
+def test_interrupted_training_resumes_bitwise(trained, tmp_path):
+    _, data, _, whole = trained
+    model = _model(jax.random.key(0))
+    # killed in stage (a), then in stage (c): each restart skips the finished stages
+    first = SCHEDULE.autoencoder_steps // 2
+    for schedule in (
+        dataclasses.replace(SCHEDULE, autoencoder_steps=first, dynamics_steps=0, joint_steps=0),
+        dataclasses.replace(SCHEDULE, joint_steps=SCHEDULE.joint_steps // 2),
+        SCHEDULE,
+    ):
+        resumed = keyvision.train(model, data, key=jax.random.key(1), schedule=schedule, out=tmp_path,
+                                  resume=True)
+    assert resumed.stages["autoencoder"].history[0]["step"] == 10  # the history carried over
+    _assert_bitwise_equal(resumed.model, whole.model)
