@@ -221,6 +221,7 @@ def test_training_lowers_reconstruction_and_dynamics_losses(trained):
     _assert_bitwise_equal(result.stages["autoencoder"].model.dynamics, model.dynamics)
 
 
+@pytest.mark.slow
 def test_interrupted_training_resumes_bitwise(trained, tmp_path):
     _, data, _, whole = trained
     model = _model(jax.random.key(0))
@@ -235,3 +236,20 @@ def test_interrupted_training_resumes_bitwise(trained, tmp_path):
                                   resume=True)
     assert resumed.stages["autoencoder"].history[0]["step"] == 10  # the history carried over
     _assert_bitwise_equal(resumed.model, whole.model)
+
+
+def test_predict_starts_from_the_reconstruction_and_scores_a_vpt(trained):
+    _, data, _, result = trained
+    # float64: cldyn.rollout saves at float64 times when JAX's 64-bit mode is on (as in the tests)
+    model = _cast(result.model, jnp.float64)
+    images, controls = data.images(jnp.float64)[:4], jnp.asarray(data.u[:4], jnp.float64)
+    predicted = eqx.filter_jit(jax.vmap(keyvision.predict, in_axes=(None, 0, 0, None)))(
+        model, images, controls, DT
+    )
+    assert predicted.shape == images.shape
+    assert bool(jnp.all(jnp.isfinite(predicted)))
+    reconstructed = model.decode(model.encode(images[:, 0]))
+    np.testing.assert_allclose(predicted[:, 0], reconstructed, atol=1e-12)
+    vpt = keyvision.valid_prediction_time(predicted, images, threshold=keyvision.prediction_threshold(images))
+    assert vpt.shape == (4,)
+    assert bool(jnp.all((vpt >= 0) & (vpt <= 1)))
