@@ -129,9 +129,14 @@ def test_keypoint_dynamics_is_the_cldyn_loss_on_encoded_keypoints():
     keypoints = jax.vmap(jax.vmap(model.estimator))(images)
     assert keypoints.shape == (3, 8, 2, 2)
     by_hand = cldyn.Sequences(keypoints.reshape(3, 8, 4), jnp.asarray(controls), DT)
-    for loss in (cldyn.Collocation(), cldyn.Rollout(steps=2), cldyn.Collocation() + 0.5 * cldyn.Rollout()):
-        expected = loss(model.dynamics, by_hand)
-        value = keyvision.KeypointDynamics(loss)(model, batch)
+    losses = (cldyn.Collocation(), cldyn.Collocation() + 0.5 * cldyn.Rollout(steps=2))
+
+    @eqx.filter_jit
+    def both(model, batch, by_hand):
+        wrapped = [keyvision.KeypointDynamics(loss)(model, batch) for loss in losses]
+        return wrapped, [loss(model.dynamics, by_hand) for loss in losses]
+
+    for value, expected in zip(*both(model, batch, by_hand), strict=True):
         assert value == pytest.approx(float(expected), rel=EXACT)
     # the reconstruction loss is the MSE of the rendered keypoints, by hand too
     rendered = jax.vmap(jax.vmap(model.renderer))(keypoints)
