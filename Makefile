@@ -13,7 +13,7 @@ $(STAMP): pyproject.toml
 	touch $(STAMP)
 
 demo: $(STAMP)
-	$(BIN)/python -m cldyn demo
+	$(BIN)/python -m cldyn demo --overwrite
 
 lint: $(STAMP)
 	$(BIN)/ruff check cldyn keyvision tests benchmarks examples docs

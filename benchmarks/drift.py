@@ -37,7 +37,7 @@ def methods():
         "Baumgarte (RK4, alpha=beta=10)": dict(solver=cldyn.RK4(), stabilisation=cldyn.Baumgarte(10.0, 10.0)),
         "Projection (RK4)": dict(solver=cldyn.RK4(), stabilisation=cldyn.Projection()),
         "RATTLE": dict(solver=cldyn.RATTLE(), stabilisation=None),
-        "RATTLE, order 4 (Suzuki composition)": dict(solver=cldyn.RATTLE(order=4), stabilisation=None),
+        "RATTLE, order 4 (Suzuki composition)": dict(solver=cldyn.RATTLE4(), stabilisation=None),
     }
 
 

@@ -80,7 +80,13 @@ def rollout(
         raise ValueError(
             f"rollout: controls must have shape (T, l) with T >= 2 samples, got {controls.shape}"
         )
-    ts = dt * np.arange(controls.shape[0])
+    # the save times and controls take the state's precision, so that a float32 model rolls out in
+    # float32 whatever JAX's default precision
+    x0 = jnp.asarray(x0)
+    dtype = x0.dtype if jnp.issubdtype(x0.dtype, jnp.floating) else jnp.result_type(float)
+    ts = (dt * np.arange(controls.shape[0])).astype(dtype)
+    if jnp.issubdtype(controls.dtype, jnp.floating):
+        controls = controls.astype(dtype)
     options = {} if adjoint is None else {"adjoint": adjoint}
     return simulate(
         model, x0, xd0, ts, control=ZeroOrderHold(controls, dt), solver=solver,

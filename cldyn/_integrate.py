@@ -19,7 +19,7 @@ from jaxtyping import Array, Float
 from ._control import AbstractControl, as_control, check_control_shape
 from ._custom_types import ArrayInput, Vector
 from ._solver import DynamicsTerm
-from ._solver.projected import HeldControlSolver
+from ._solver.projected import ProjectedSolver
 from ._stabilisation import AbstractStabilisation, NoStabilisation, Projection
 from ._system import AbstractDynamics, ConstrainedLagrangian, check_array
 
@@ -370,9 +370,12 @@ def _simulate(
     else:
         reference = None
     term = DynamicsTerm(system, reference, control=control, stabilisation=stabilisation)
-    wrapped = stabilisation.wrap(solver)
-    if jumps is not None:
-        wrapped = HeldControlSolver(wrapped)
+    # diffrax sees through one wrapper only (isinstance checks, forward-mode autodiff's scan), so a
+    # held control and the stabilisation's correction share one
+    if jumps is None:
+        wrapped = stabilisation.wrap(solver)
+    else:
+        wrapped = ProjectedSolver(solver, stabilisation, hold_controls=True)
 
     if adaptive:
         controller, step = dfx.PIDController(rtol=rtol, atol=atol), dt0

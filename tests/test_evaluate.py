@@ -2,6 +2,7 @@
 and `evaluate` on an exact and a wrong model."""
 
 import diffrax as dfx
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -12,6 +13,7 @@ import cldyn
 TOL = 1e-12
 # A free point mass under a held force moves on exact parabolas, which RK4 integrates exactly.
 PARABOLA_ATOL = 1e-12
+FLOAT32_ATOL = 1e-6  # a few float32 ulps of positions of order 1
 # Small-angle pendulum (theta0 = 1e-3 rad) against theta0 cos(omega t): the nonlinearity shifts the
 # phase by theta0^2 / 16 * omega t ~ 6e-7 and RK4 (h = 0.01) by ~3e-7, relative to the amplitude.
 SMALL_ANGLE_RTOL = 1e-5
@@ -76,6 +78,34 @@ def test_simulate_holds_each_sample_whatever_the_steps(solver, dt0):
     fine = np.repeat(controls, 2, axis=0)[:-1]  # each sample held over two half intervals
     exact = _held_motion(x0, v0, fine, mass, h / 2)
     np.testing.assert_allclose(traj.x, exact, rtol=0, atol=1e-9)
+
+
+def test_forward_mode_derivative_of_a_held_rollout_matches_the_parabola():
+    # identify differentiates rollouts in forward mode: the held control must not put diffrax's
+    # reverse-mode-only loop in the way. d x(T) / d v0 of a free mass is T, per axis.
+    mass, h = 2.0, 0.1
+    controls = np.array([[1.0, -2.0], [3.0, 0.5], [-1.0, 1.0]])
+
+    def final(v0):
+        run = cldyn.rollout(_free_point_mass(mass), jnp.array([0.3, -0.1]), v0, controls, h,
+                            adjoint=dfx.ForwardMode())
+        return run.x[-1]
+
+    jacobian = jax.jacfwd(final)(jnp.array([0.5, 0.2]))
+    np.testing.assert_allclose(jacobian, 2 * h * np.eye(2), rtol=0, atol=PARABOLA_ATOL)
+
+
+def test_a_float32_model_rolls_out_in_float32():
+    # the save times follow the state's precision (strict dtype promotion refuses a float64 grid)
+    mass, h = 2.0, 0.1
+    model = jax.tree.map(
+        lambda a: a.astype(jnp.float32) if eqx.is_inexact_array(a) else a, _free_point_mass(mass)
+    )
+    controls = np.array([[1.0, -2.0], [3.0, 0.5], [-1.0, 1.0]])
+    x0, v0 = np.array([0.3, -0.1], np.float32), np.array([0.5, 0.2], np.float32)
+    run = cldyn.rollout(model, x0, v0, controls, h)
+    assert run.x.dtype == jnp.float32 and run.ts.dtype == jnp.float32
+    np.testing.assert_allclose(run.x, _held_motion(x0, v0, controls, mass, h), rtol=0, atol=FLOAT32_ATOL)
 
 
 def test_rollout_of_a_small_angle_pendulum_is_harmonic():

@@ -63,7 +63,11 @@ class ProjectedSolver(_AbstractForwardingSolver):
     **Arguments:**
 
     - `solver`: any diffrax ODE solver.
-    - `projection`: the correction, usually a `cldyn.Projection`.
+    - `projection`: the correction, usually a `cldyn.Projection` (any `AbstractStabilisation`: one
+      that corrects nothing leaves the steps as they are).
+    - `hold_controls`: apply the control of every step as `AbstractControl.over_step` gives it: a
+      `ZeroOrderHold` then holds one sample over the whole step, as MuJoCo does, instead of reading
+      the next sample at the step's last stage. `simulate` sets it when the control jumps.
 
     !!! example
 
@@ -76,9 +80,16 @@ class ProjectedSolver(_AbstractForwardingSolver):
 
     solver: dfx.AbstractSolver
     projection: "AbstractStabilisation"
+    hold_controls: bool = eqx.field(default=False, static=True)
     scan_kind: str | None = None
 
     def step(self, terms, t0, t1, y0, args, solver_state, made_jump):
+        if self.hold_controls:
+            term, direction = unwrap_term(terms)
+            if term.control is not None:
+                # the solver sees times multiplied by the direction of integration
+                held = term.control.over_step(direction * t0, direction * t1)
+                terms = replace_term(terms, eqx.tree_at(lambda s: s.control, term, held))
         y1, error, dense_info, solver_state, result = self._inner().step(
             terms, t0, t1, y0, args, solver_state, made_jump
         )
@@ -91,25 +102,3 @@ class ProjectedSolver(_AbstractForwardingSolver):
         result = dfx.RESULTS.where(result == dfx.RESULTS.successful, corrected, result)
         return y1, error, dense_info, solver_state, result
 
-
-class HeldControlSolver(_AbstractForwardingSolver):
-    """Wraps a diffrax solver so that every stage of a step applies the control as
-    `AbstractControl.over_step` gives it for that step (a `ZeroOrderHold` holds one sample over the
-    whole step, as MuJoCo does, instead of reading the next sample at the step's last stage).
-    `simulate` wraps its solver in one when the control jumps. The terms must be a `DynamicsTerm`.
-
-    **Arguments:**
-
-    - `solver`: any diffrax ODE solver (a `ProjectedSolver` among them).
-    """
-
-    solver: dfx.AbstractSolver
-    scan_kind: str | None = None
-
-    def step(self, terms, t0, t1, y0, args, solver_state, made_jump):
-        term, direction = unwrap_term(terms)
-        if term.control is not None:
-            # the solver sees times multiplied by the direction of integration
-            held = term.control.over_step(direction * t0, direction * t1)
-            terms = replace_term(terms, eqx.tree_at(lambda s: s.control, term, held))
-        return self._inner().step(terms, t0, t1, y0, args, solver_state, made_jump)
