@@ -43,13 +43,16 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
-def main(argv: list[str] | None = None) -> int:
+def main(argv: list[str] | None = None, *, parser: argparse.ArgumentParser | None = None) -> int:
     """Run the command line on `argv` (default `sys.argv[1:]`); returns the exit status.
 
     Bad options and expected failures print `cldyn <command>: error: <message>` and return 2; Ctrl-C
-    returns 130. Never raises `SystemExit`, so it can be called in-process.
+    returns 130. Never raises `SystemExit`, so it can be called in-process. `parser` (default
+    `build_parser()`) lets another program built of such commands (`keyvision`) share this error path;
+    messages start with its `prog`.
     """
-    parser = build_parser()
+    parser = build_parser() if parser is None else parser
+    program = parser.prog
     try:
         args, unknown = parser.parse_known_args(argv)
         if unknown:  # named by the command they were given to, as every other argument error
@@ -68,9 +71,9 @@ def main(argv: list[str] | None = None) -> int:
     try:
         return int(args.run(args) or 0)
     except KeyboardInterrupt:
-        print(f"cldyn {args.command}: interrupted", file=sys.stderr)
+        print(f"{program} {args.command}: interrupted", file=sys.stderr)
         return INTERRUPTED
     except _EXPECTED as error:
         what = f"out of memory ({error})" if isinstance(error, MemoryError) else str(error)
-        print(f"cldyn {args.command}: error: {what}", file=sys.stderr)
+        print(f"{program} {args.command}: error: {what}", file=sys.stderr)
         return 2

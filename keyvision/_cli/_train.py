@@ -1,0 +1,250 @@
+"""`keyvision train`: a KeyCLD model learnt from rendered frames, in `keyvision.train`'s stages.
+
+The output directory holds `keyvision.json` (the model's sizes, the dynamics' cldyn spec, the data,
+the seed and the schedule), `model.eqx` (the trained parameters: `keyvision evaluate --model` reads
+both), and `keyvision.train`'s own files (`train.json`, and per stage `checkpoint-<stage>.eqx`,
+`history-<stage>.json`, `model-<stage>.eqx`) from which `--resume` continues.
+"""
+
+import argparse
+import json
+import shlex
+import sys
+
+from cldyn._cli._common import (
+    INTERRUPTED,
+    CommandError,
+    add_command,
+    output_directory,
+    positive,
+    refuse_existing,
+    seed,
+)
+from cldyn._keycld import KEYCLD_SCENES, MODEL_KINDS
+
+from ._common import MODEL_NAME, SPEC_NAME, frames_file
+
+_STAGES = ("autoencoder", "dynamics", "joint")
+_STAGE_FILES = tuple(
+    f"{name}-{stage}.{ext}"
+    for stage in _STAGES
+    for name, ext in (("checkpoint", "eqx"), ("history", "json"), ("model", "eqx"))
+)
+_FILES = (SPEC_NAME, MODEL_NAME, "train.json", *_STAGE_FILES)
+_VALIDATION_RUNS = 4  # validated in one call at every checkpoint: a few runs suffice
+_COLLOCATION_FRAMES = 5  # the collocation loss's central differences of central differences
+
+
+def register(subparsers) -> None:
+    """Add `keyvision train`."""
+    from keyvision import Schedule
+
+    default = Schedule()
+    parser = add_command(
+        subparsers,
+        "train",
+        help="learn a KeyCLD model from rendered frames",
+        description="Train a KeyCLD model (keypoint estimator, cldyn dynamics, renderer) on the training "
+        "runs of frames written by `keyvision render`, unsupervised, in three stages: the autoencoder on "
+        "single frames, the dynamics on the frozen keypoints (collocation), then everything jointly on "
+        "windows of frames. The dynamics get the constraints of the frames' KeyCLD scene. Writes "
+        "keyvision.json and model.eqx (and the stages' checkpoints) to --out; prints a JSON summary.",
+    )
+    count, steps = positive(integer=True), positive(integer=True, allow_zero=True)
+    parser.add_argument("--data", required=True, help="frames.npz, or the directory keyvision render wrote")
+    parser.add_argument("--out", required=True, help="output directory")
+    parser.add_argument("--model", choices=MODEL_KINDS, default="keycld", help="the dynamics model")
+    parser.add_argument(
+        "--constraint", choices=KEYCLD_SCENES, help="KeyCLD's constraints (default: the frames' KeyCLD scene)"
+    )
+    parser.add_argument("--width", type=count, default=32, help="width of both U-Nets (32 in the paper)")
+    parser.add_argument(
+        "--dynamics-width",
+        type=count,
+        default=None,
+        help="hidden width of the dynamics (default: 32; node2: 64)",
+    )
+    parser.add_argument(
+        "--autoencoder-steps", type=steps, default=default.autoencoder_steps, help="stage (a)"
+    )
+    parser.add_argument(
+        "--dynamics-steps",
+        type=steps,
+        default=default.dynamics_steps,
+        help="steps of stage (b), the dynamics",
+    )
+    parser.add_argument(
+        "--joint-steps", type=steps, default=default.joint_steps, help="steps of stage (c), joint"
+    )
+    parser.add_argument("--window", type=count, default=default.window, help="frames per window of stage (c)")
+    parser.add_argument("--lr", type=positive(), default=default.learning_rate, help="learning rate")
+    parser.add_argument("--seed", type=seed, default=0, help="seed of the model and the batches")
+    parser.add_argument("--resume", action="store_true", help="continue the training in --out")
+    parser.add_argument(
+        "--overwrite", action="store_true", help="start afresh in an --out that holds a training"
+    )
+    parser.add_argument("--no-progress", dest="progress", action="store_false", help="no progress lines")
+    parser.set_defaults(run=run)
+
+
+def _model_spec(args: argparse.Namespace, frames) -> dict:
+    """The sizes of the model for these frames, checked before any training."""
+    height, width = frames.image_size
+    if height != width or height % 4:
+        raise CommandError(
+            f"--data: frames of {height}x{width} pixels; the U-Nets need square sides, multiples of 4"
+        )
+    scene = str(frames.info.get("scene", ""))
+    constraint = args.constraint or (scene.removeprefix("keycld/") if scene.startswith("keycld/") else None)
+    if args.model.startswith("keycld") and constraint is None:
+        raise CommandError(
+            f"the frames' scene {scene!r} is not a KeyCLD scene: give --constraint or --model nc / node2"
+        )
+    node2 = args.model == "node2"
+    keypoints = len(frames.info["keypoint_names"])
+    return {
+        "schema": "keyvision.Model/1",
+        "keypoints": keypoints,
+        "image_size": height,
+        "width": args.width,
+        "dynamics": {
+            "kind": args.model,
+            "size": 2 * keypoints,
+            "num_inputs": frames.u.shape[-1],
+            "constraint": constraint if args.model.startswith("keycld") else None,
+            "width": args.dynamics_width or (64 if node2 else 32),
+            "depth": 3 if node2 else 2,
+        },
+        "dtype": "float32",
+    }
+
+
+def _check_frames(args: argparse.Namespace, frames) -> None:
+    if args.joint_steps and args.window > frames.num_frames:
+        raise CommandError(f"--window {args.window}: longer than the runs' {frames.num_frames} frames")
+    if args.joint_steps and args.window < _COLLOCATION_FRAMES:
+        raise CommandError(
+            f"--window {args.window}: the collocation loss needs at least {_COLLOCATION_FRAMES}"
+        )
+    if args.dynamics_steps and frames.num_frames < _COLLOCATION_FRAMES:
+        raise CommandError(
+            f"--data: runs of {frames.num_frames} frames; the collocation loss needs at least "
+            f"{_COLLOCATION_FRAMES}"
+        )
+
+
+def _interrupted(args: argparse.Namespace, out) -> int:
+    if any((out / f"checkpoint-{stage}.eqx").exists() for stage in _STAGES):
+        argv = [a for a in args.argv if a != "--overwrite"]
+        argv += [] if "--resume" in argv else ["--resume"]
+        where = "continue with:\n  " + shlex.join(["keyvision", *argv])
+    else:
+        where = "no checkpoint was written; nothing to resume"
+    print(f"keyvision train: interrupted; {where}", file=sys.stderr)
+    return INTERRUPTED
+
+
+def run(args: argparse.Namespace) -> int:
+    """Load the frames, build the model, train, save; print a JSON summary."""
+    if args.resume and args.overwrite:
+        raise CommandError("--resume continues the training in --out and --overwrite replaces it: give one")
+    data_path = frames_file(args.data, "--data")
+    out = output_directory(args.out)
+    created = not out.exists()
+    if not args.resume:
+        refuse_existing(
+            [out / name for name in _FILES],
+            overwrite=args.overwrite,
+            hint="pass --resume to continue that training or --overwrite to start afresh",
+        )
+    import dataclasses
+
+    import equinox as eqx
+    import jax
+
+    import cldyn
+    import keyvision
+    from cldyn._misc import atomic_save, atomic_write
+
+    from ._common import build_model
+
+    frames = keyvision.Frames.load(data_path)
+    spec = _model_spec(args, frames)
+    _check_frames(args, frames)
+    train_frames, validation_frames = frames.split()
+    if train_frames.num_runs == 0:
+        raise CommandError(f"--data {data_path}: all {frames.num_runs} runs are for validation")
+    schedule = dataclasses.replace(
+        keyvision.Schedule(),
+        autoencoder_steps=args.autoencoder_steps,
+        dynamics_steps=args.dynamics_steps,
+        joint_steps=args.joint_steps,
+        window=args.window,
+        learning_rate=args.lr,
+    )
+    spec.update(
+        seed=args.seed,
+        data={
+            "file": str(data_path),
+            "scene": frames.info.get("scene"),
+            "cache_key": frames.info.get("cache_key"),
+        },
+        schedule=schedule.describe(),
+    )
+    spec_path = out / SPEC_NAME
+    if args.resume and spec_path.is_file():
+        try:
+            previous = json.loads(spec_path.read_text())
+        except (OSError, UnicodeDecodeError, json.JSONDecodeError) as error:
+            raise CommandError(
+                f"{spec_path}: unreadable ({error}); cannot check what --resume continues"
+            ) from None
+        changed = sorted(name for name in {**previous, **spec} if previous.get(name) != spec.get(name))
+        if changed:
+            raise CommandError(
+                f"--resume: the options differ from those of the training in {out} ({', '.join(changed)}); "
+                "resume with the same options or start afresh in another --out"
+            )
+    model_key, train_key = jax.random.split(jax.random.key(args.seed))
+    try:
+        model = build_model(spec, key=model_key)
+    except ValueError as error:
+        raise CommandError(f"--constraint {spec['dynamics']['constraint']}: {error}") from None
+    validation = None
+    if validation_frames.num_runs:
+        validation = keyvision.ImageSequences.from_frames(
+            validation_frames.select(slice(0, _VALIDATION_RUNS))
+        )
+    fresh = not spec_path.exists()
+    atomic_write(spec_path, json.dumps(spec, indent=1))
+    try:
+        result = keyvision.train(
+            model,
+            keyvision.ImageSequences.from_frames(train_frames),
+            key=train_key,
+            schedule=schedule,
+            validation=validation,
+            out=out,
+            resume=args.resume,
+            progress_meter=cldyn.TextProgressMeter() if args.progress else cldyn.NoProgressMeter(),
+        )
+    except BaseException as error:
+        if fresh and not any((out / f"checkpoint-{stage}.eqx").exists() for stage in _STAGES):
+            for name in (SPEC_NAME, "train.json"):  # nothing to resume: leave --out as it was
+                (out / name).unlink(missing_ok=True)
+            if created and not any(out.iterdir()):
+                out.rmdir()
+        if isinstance(error, KeyboardInterrupt):
+            return _interrupted(args, out)
+        raise
+    atomic_save(out / MODEL_NAME, lambda temporary: eqx.tree_serialise_leaves(temporary, result.model))
+    summary = {"out": str(out), "seconds": round(sum(s.seconds for s in result.stages.values()), 2)}
+    for stage, fitted in result.stages.items():
+        last = fitted.history[-1] if fitted.history else {}
+        summary[stage] = {
+            "steps": fitted.step,
+            "loss": last.get("loss"),
+            "validation": last.get("validation"),
+        }
+    print(json.dumps(summary))
+    return 0

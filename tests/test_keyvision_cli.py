@@ -1,0 +1,133 @@
+"""The `keyvision` command line, in-process through `main(argv)`: bad options and expected failures give
+one `keyvision <command>: error: ...` line and status 2 and create nothing; a tiny render -> train ->
+evaluate does its job and writes its files."""
+
+import json
+import os
+
+import numpy as np
+import pytest
+
+from keyvision._cli import main
+
+COMMANDS = ("render", "train", "evaluate")
+VPT_TOL = 1e-12  # a fraction of frames, recomputed from the recorded errors
+
+# command -> (arguments with one invalid value, the option the error must name)
+BAD_ARGUMENTS = {
+    "render": (["--scene", "keycld/pendulum", "--out", "{tmp}/r", "--runs", "0"], "--runs"),
+    "train": (["--data", "{tmp}/d", "--out", "{tmp}/t", "--width", "-8"], "--width"),
+    "evaluate": (["--model", "{tmp}/m", "--data", "{tmp}/d", "--out", "{tmp}/e", "--batch", "x"], "--batch"),
+}
+
+
+def _run(capsys, argv):
+    status = main([str(a) for a in argv])
+    out, err = capsys.readouterr()
+    return status, out, err
+
+
+def _error_line(err: str, command: str) -> str:
+    lines = [line for line in err.splitlines() if line.startswith(f"keyvision {command}: error:")]
+    assert len(lines) == 1, err
+    assert "Traceback" not in err
+    return lines[0]
+
+
+def test_help_lists_every_command(capsys):
+    status, out, _ = _run(capsys, ["--help"])
+    assert status == 0
+    for command in COMMANDS:
+        assert command in out
+        status, out_command, _ = _run(capsys, [command, "--help"])
+        assert status == 0 and "--out" in out_command and "(default:" in out_command
+
+
+@pytest.mark.parametrize("command", COMMANDS)
+def test_a_bad_argument_is_one_error_line_and_creates_nothing(command, tmp_path, capsys):
+    arguments, option = BAD_ARGUMENTS[command]
+    status, _, err = _run(capsys, [command, *(a.format(tmp=tmp_path) for a in arguments)])
+    assert status == 2
+    assert option in _error_line(err, command)
+    assert list(tmp_path.iterdir()) == []
+
+
+@pytest.mark.parametrize(
+    "argv, message",
+    [
+        (
+            ["render", "--scene", "keycld/pendulum", "--runs", "2", "--validation-runs", "3"],
+            "--validation-runs 3",
+        ),
+        (["train", "--data", "{tmp}/missing.npz"], "no such file"),
+        (["train", "--data", "{tmp}/missing.npz", "--resume", "--overwrite"], "give one"),
+        (["evaluate", "--model", "{tmp}/missing", "--data", "{tmp}/missing.npz"], "no such directory"),
+    ],
+)
+def test_failures_before_any_work_create_nothing(argv, message, tmp_path, capsys):
+    status, _, err = _run(capsys, [a.format(tmp=tmp_path) for a in argv] + ["--out", tmp_path / "out"])
+    assert status == 2
+    assert message in _error_line(err, argv[0])
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_existing_frames_are_refused_without_overwrite(tmp_path, capsys):
+    (tmp_path / "frames.npz").write_text("an earlier run's frames")
+    argv = ["render", "--scene", "keycld/pendulum", "--out", tmp_path]
+    status, _, err = _run(capsys, argv)
+    assert status == 2
+    assert "pass --overwrite" in _error_line(err, "render")
+    assert (tmp_path / "frames.npz").read_text() == "an earlier run's frames"
+
+
+@pytest.mark.mujoco
+@pytest.mark.slow
+def test_render_train_evaluate(tmp_path, capsys):
+    pytest.importorskip("mujoco")
+    imageio = pytest.importorskip("imageio.v3")
+    pytest.importorskip("matplotlib")
+    import keyvision
+
+    data, model, results, cache = (tmp_path / name for name in ("data", "model", "results", "cache"))
+    render = ["render", "--scene", "keycld/pendulum", "--out", data, "--runs", 2, "--frames", 6, "--size", 16]
+    render += ["--validation-runs", 1, "--workers", 1, "--cache", cache, "--no-progress"]
+    status, out, err = _run(capsys, render)
+    assert status == 0, err
+    assert "2 runs x 6 frames of 16x16 pixels" in out and "cached in" in out
+    frames = keyvision.Frames.load(data / "frames.npz")
+    assert frames.frames.shape == (2, 6, 16, 16, 3)
+    # the same request again: the cache answers, and --overwrite replaces the frames file
+    status, out, err = _run(capsys, render + ["--overwrite"])
+    assert status == 0, err
+    assert "loaded from the cache" in out
+    np.testing.assert_array_equal(keyvision.Frames.load(data / "frames.npz").frames, frames.frames)
+
+    # the joint stage is covered by the library's tests; its compilation would double this test's time
+    train = ["train", "--data", data, "--out", model, "--width", 4, "--dynamics-width", 8]
+    train += ["--autoencoder-steps", 2, "--dynamics-steps", 2, "--joint-steps", 0, "--no-progress"]
+    status, out, err = _run(capsys, train)
+    assert status == 0, err
+    summary = json.loads(out)
+    assert summary["autoencoder"]["steps"] == 2 and summary["dynamics"]["steps"] == 2
+    spec = json.loads((model / "keyvision.json").read_text())
+    assert spec["keypoints"] == 1 and spec["dynamics"]["constraint"] == "pendulum"
+    assert (model / "model.eqx").is_file()
+    status, _, err = _run(capsys, train)
+    assert status == 2 and "--resume" in _error_line(err, "train")
+
+    status, out, err = _run(capsys, ["evaluate", "--model", model, "--data", data, "--out", results])
+    assert status == 0, err
+    assert out.startswith("VPT over 1 validation runs of 6 frames")
+    record = json.loads((results / "vpt.json").read_text())
+    (vpt,) = record["vpt_per_run"]
+    # the VPT is the first frame whose error exceeds the threshold, as a fraction of the 6 frames
+    exceeded = np.asarray(record["mse_over_time"]) > record["threshold"]
+    expected = np.argmax(exceeded) / 6 if exceeded.any() else 1.0
+    assert vpt == pytest.approx(expected, abs=VPT_TOL)
+    assert record["vpt"]["mean"] == pytest.approx(vpt, abs=VPT_TOL)
+    # the strip shows the true validation frames (every one of the 6) over the predicted ones
+    strip = imageio.imread(results / "strip.png")
+    assert strip.shape == (32, 6 * 16, 3)
+    truth = np.concatenate(list(frames.frames[1]), axis=1)
+    np.testing.assert_array_equal(strip[:16], truth)
+    assert os.path.getsize(results / "mse.png") > 0
