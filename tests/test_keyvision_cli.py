@@ -80,6 +80,54 @@ def test_existing_frames_are_refused_without_overwrite(tmp_path, capsys):
     assert (tmp_path / "frames.npz").read_text() == "an earlier run's frames"
 
 
+def _fake_frames(path, scene="keycld/pendulum"):
+    """A frames file as `keyvision render` writes it, without MuJoCo: 2 runs of 6 blank frames."""
+    import keyvision
+
+    frames = keyvision.Frames(
+        frames=np.zeros((2, 6, 16, 16, 3), np.uint8),
+        u=np.zeros((2, 6, 1)),
+        dt=0.02,
+        extras={},
+        camera=keyvision.PlanarCamera(np.eye(3), np.eye(2, 3)),
+        info={"scene": scene, "keypoint_names": ["tip"], "validation_runs": 1},
+    )
+    return frames.save(path)
+
+
+def test_train_needs_constraints_for_a_scene_not_of_keycld(tmp_path, capsys):
+    data = _fake_frames(tmp_path / "frames.npz", scene="arm.xml")
+    status, _, err = _run(capsys, ["train", "--data", data, "--out", tmp_path / "out"])
+    assert status == 2
+    assert "--constraint" in _error_line(err, "train")
+    assert not (tmp_path / "out").exists()
+
+
+@pytest.mark.parametrize("checkpointed", [False, True])
+def test_ctrl_c_in_train_says_how_to_resume(checkpointed, tmp_path, capsys, monkeypatch):
+    import keyvision
+
+    data, out = _fake_frames(tmp_path / "frames.npz"), tmp_path / "out"
+
+    def interrupted(model, data, *, out, **options):
+        if checkpointed:
+            (out / "checkpoint-autoencoder.eqx").write_bytes(b"")
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(keyvision, "train", interrupted)
+    status, _, err = _run(
+        capsys, ["train", "--data", data, "--out", out, "--width", 4, "--window", 5, "--no-progress"]
+    )
+    assert status == 130
+    assert "Traceback" not in err
+    if checkpointed:
+        assert "keyvision train: interrupted; continue with:" in err and "--resume" in err
+        assert (out / "keyvision.json").is_file()
+    else:
+        assert "nothing to resume" in err
+        assert not out.exists()  # left as it was
+
+
 @pytest.mark.mujoco
 @pytest.mark.slow
 def test_render_train_evaluate(tmp_path, capsys):
@@ -114,6 +162,8 @@ def test_render_train_evaluate(tmp_path, capsys):
     assert (model / "model.eqx").is_file()
     status, _, err = _run(capsys, train)
     assert status == 2 and "--resume" in _error_line(err, "train")
+    status, _, err = _run(capsys, train + ["--resume", "--lr", 0.01])
+    assert status == 2 and "options differ" in _error_line(err, "train")
 
     status, out, err = _run(capsys, ["evaluate", "--model", model, "--data", data, "--out", results])
     assert status == 0, err
