@@ -1,6 +1,7 @@
 """`keyvision render`: an image dataset of a planar MuJoCo scene in the KeyCLD protocol."""
 
 import argparse
+import pathlib
 import time
 
 from cldyn._cli._common import CommandError, add_command, add_overwrite, output_directory, positive, seed
@@ -60,8 +61,6 @@ def run(args: argparse.Namespace) -> int:
     if args.cache is not None and not args.use_cache:
         raise CommandError("--cache names a cache and --no-cache asks for none: give one")
     out = output_directory(args.out, results=(FRAMES_NAME,), overwrite=args.overwrite)
-    import pathlib
-
     import cldyn
     import keyvision
 
@@ -81,15 +80,16 @@ def run(args: argparse.Namespace) -> int:
     )
     path = frames.save(out / FRAMES_NAME)
     seconds = time.time() - start
-    where = "no cache"
+    done, where = "rendered", "no cache"
     if args.use_cache:
         cached = sorted(cache.glob(f"*-{frames.info['cache_key'][:16]}.npz"))
-        if cached:
-            reused = cached[0].stat().st_mtime < start
-            where = f"{'loaded from the cache' if reused else 'cached in'} {cached[0]}"
+        if cached and cached[0].stat().st_mtime < start:  # an earlier render of the same request
+            done, where = "loaded", f"loaded from the cache {cached[0]}"
+        elif cached:
+            where = f"cached in {cached[0]}"
     height, width = frames.image_size
     print(
-        f"rendered {frames.num_runs} runs x {frames.num_frames} frames of {height}x{width} pixels "
+        f"{done} {frames.num_runs} runs x {frames.num_frames} frames of {height}x{width} pixels "
         f"({frames.info['validation_runs']} runs for validation, dt {frames.dt:g} s) of {args.scene} "
         f"in {seconds:.1f} s; {where}; wrote {path}"
     )

@@ -185,7 +185,7 @@ def run(args: argparse.Namespace) -> int:
     spec.update(
         seed=args.seed,
         data={
-            "file": str(data_path),
+            "file": str(data_path.resolve()),
             "scene": frames.info.get("scene"),
             "cache_key": frames.info.get("cache_key"),
         },
