@@ -77,7 +77,10 @@ def test_cli_fit_resume_and_load(tmp_path, capsys, monkeypatch):
     assert main(common + ["--steps", "5"]) == 0
     first = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
     assert first["steps"] == 5
-    assert main(common + ["--steps", "10", "--resume"]) == 0
+    # more steps is a changed setting: refused on resume unless forced
+    assert main(common + ["--steps", "10", "--resume"]) == 2
+    assert "steps 5 -> 10" in capsys.readouterr().err
+    assert main(common + ["--steps", "10", "--resume", "--force"]) == 0
     summary = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
     assert summary["steps"] == 10 and summary["validation"] is not None
     model, spec = cldyn.load_fit(out)
@@ -89,5 +92,5 @@ def test_cli_fit_resume_and_load(tmp_path, capsys, monkeypatch):
     assert main(["fit", "--data", str(path), "--model", "node2", "--validation-runs", "1", "--steps", "2",
                  "--out", str(tmp_path / "node2"), "--no-progress", "--batch-size", "2"]) == 0
     assert main(["fit", "--data", str(path), "--model", "keycld", "--steps", "2", "--validation-runs", "1",
-                 "--out", str(tmp_path / "bad"), "--no-progress"]) == 2
+                 "--out", str(tmp_path / "bad"), "--no-progress", "--batch-size", "2"]) == 2
     assert "needs a constraint" in capsys.readouterr().err

@@ -253,5 +253,5 @@ def test_command_line(tmp_path, capsys):
     report = json.loads((report_dir / "validation.json").read_text())
     assert report["duration"] == 0.2 and report["max_position_error"] < 1e-6
     assert (report_dir / "keypoint_error.png").stat().st_size > 0
-    assert main(["record", "--mjcf", "no_such_file.xml", "--out", str(out)]) == 2
+    assert main(["record", "--mjcf", "no_such_file.xml", "--out", str(tmp_path / "other.npz")]) == 2
     assert "MJCF file not found: no_such_file.xml" in capsys.readouterr().err
