@@ -405,7 +405,8 @@ _SHARDED = textwrap.dedent("""
 
 @pytest.mark.slow
 def test_two_devices_give_the_same_fit_as_one():
-    env = dict(os.environ, XLA_FLAGS="--xla_force_host_platform_device_count=2", JAX_PLATFORMS="cpu")
+    flags = os.environ.get("XLA_FLAGS", "") + " --xla_force_host_platform_device_count=2"
+    env = dict(os.environ, XLA_FLAGS=flags.strip(), JAX_PLATFORMS="cpu")
     run = subprocess.run(
         [sys.executable, "-c", _SHARDED], capture_output=True, text=True, env=env, timeout=600
     )

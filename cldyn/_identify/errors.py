@@ -47,7 +47,9 @@ def _rollout_batch(model, x0, xd0, us, dt: float, measured, window: int):
         converged = solution.result == optx.RESULTS.successful
         return _run(model, x0 + delta[0], xd0 + delta[1], us, dt), converged
 
-    return jax.vmap(one)(x0, xd0, us, measured)
+    # one run after another: batching the Gauss-Newton fit and the projections through their custom
+    # derivatives costs more tracing and compilation than the rollouts of a few dozen runs take
+    return jax.lax.map(lambda args: one(*args), (x0, xd0, us, measured))
 
 
 def rollout_errors(
