@@ -2,10 +2,6 @@ import os
 import tempfile
 
 os.environ.setdefault("MUJOCO_GL", "egl")
-# The suite is compile-bound on two cores: LLVM's optimisation of the compiled CPU programs costs more
-# than it saves on runs of test size (the integrator tests take a quarter less time without it). Set
-# before JAX starts its backend; subprocesses of the tests inherit it.
-os.environ["XLA_FLAGS"] = (os.environ.get("XLA_FLAGS", "") + " --xla_backend_optimization_level=0").strip()
 
 import jax
 import pytest
