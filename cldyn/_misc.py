@@ -36,7 +36,7 @@ def optional_import(name: str, *, purpose: str) -> ModuleType:
         top = name.split(".")[0]
         extra = _EXTRAS.get(top)
         hint = f"pip install 'cldyn[{extra}]'" if extra else f"pip install {top}"
-        raise ImportError(f"{purpose} needs the optional package {top!r}: {hint}") from error
+        raise ImportError(f"{purpose} needs the optional package {top!r}: {hint}", name=top) from error
 
 
 def _umask() -> int:
@@ -127,3 +127,9 @@ def check_fraction(name: str, value, *, low_open: bool = True, high_open: bool =
         interval = ("(" if low_open else "[") + "0, 1" + (")" if high_open else "]")
         raise ValueError(f"{name} must lie in {interval}, got {value!r}")
     return number
+
+
+# The files `cldyn.mujoco.validate` writes, named here (without MuJoCo) so that the command line can
+# check its output directory before it needs the [mujoco] extra.
+VALIDATION_REPORT = "validation.json"
+VALIDATION_PLOT = "keypoint_error.png"

@@ -79,7 +79,7 @@ def run(args: argparse.Namespace) -> int:
         raise CommandError(
             f"--duration {args.duration:g}: shorter than --dt {args.dt:g}, so nothing would be compared"
         )
-    from cldyn.mujoco._validate import PLOT_NAME, REPORT_NAME
+    from cldyn._misc import VALIDATION_PLOT as PLOT_NAME, VALIDATION_REPORT as REPORT_NAME
 
     out = output_directory(args.out, results=(REPORT_NAME, PLOT_NAME), overwrite=args.overwrite)
     enable_float64()

@@ -13,14 +13,21 @@ import mujoco
 import numpy as np
 
 from .._integrate import simulate
-from .._misc import atomic_save, atomic_write, check_positive, optional_import
+from .._misc import (
+    VALIDATION_PLOT,
+    VALIDATION_REPORT,
+    atomic_save,
+    atomic_write,
+    check_positive,
+    optional_import,
+)
 from .._progress import AbstractProgressMeter, NoProgressMeter
 from ._bridge import from_mjcf
 from ._record import _control_range, prepare, random_initial_states, simulate_mujoco
 from ._scenes import load_model
 
-PLOT_NAME = "keypoint_error.png"
-REPORT_NAME = "validation.json"
+PLOT_NAME = VALIDATION_PLOT
+REPORT_NAME = VALIDATION_REPORT
 
 
 def _plot(path: pathlib.Path, ts: np.ndarray, errors: np.ndarray, title: str) -> None:
