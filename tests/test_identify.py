@@ -150,6 +150,8 @@ def test_identify_finds_linear_and_quadratic_joint_damping(tmp_path):
         d.to_dict() for d in result.detected
     ]
     quadratic = found[("joint_quadratic_damping", "elbow")]
+    print(f"quadratic damping at the elbow: {quadratic.value:.6g} (truth {c}); "
+          f"linear at the shoulder: {found[('joint_damping', 'shoulder')].value:.6g} (truth {b})")
     assert abs(quadratic.value - c) <= QUADRATIC_RTOL * c
     linear = found[("joint_damping", "shoulder")]
     assert abs(linear.value - b) <= DAMPING_RTOL * b
