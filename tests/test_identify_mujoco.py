@@ -181,10 +181,11 @@ def test_a_learned_nominal_model_still_leads_to_the_damping():
     from cldyn._identify.refit import refit
     from cldyn._identify.smoothing import prepare
 
+    # fewer and shorter runs than the matrix: fitting a neural potential costs time in proportion
     data = record(
         "acrobot",
-        runs=RUNS,
-        duration=SECONDS,
+        runs=12,
+        duration=2.0,
         dt=0.01,
         physics_dt=0.002,
         integrator="rk4",

@@ -1,12 +1,9 @@
 """The errors before and after: weak-form accelerations and rollouts on the held-out runs."""
 
-import diffrax as dfx
 import equinox as eqx
 import jax
 import jax.numpy as jnp
-import lineax as lx
 import numpy as np
-import optimistix as optx
 
 from .._evaluate import rollout
 from .._system import ConstrainedLagrangian
@@ -19,37 +16,66 @@ def _accelerations(model, x, xd, u):
     return jax.vmap(jax.vmap(model.acceleration))(x, xd, u)
 
 
-def _run(model, x0, xd0, us, dt):
-    # forward mode: the initial-state fit differentiates through this with Jacobian-vector products
-    return rollout(model, x0, xd0, us, dt, adjoint=dfx.ForwardMode()).x
-
-
 @eqx.filter_jit
-def _rollout_batch(model, x0, xd0, us, dt: float, measured, window: int):
+def _rollout_batch(
+    model,
+    x0,
+    xd0,
+    us,
+    dt: float,
+    measured,
+    window: int,
+    max_steps: int = 20,
+    rtol: float = 1e-6,
+    atol: float = 1e-9,
+):
     """Rollouts from the start of each run, and whether each initial-state fit converged.
 
     The initial state is estimated with the model itself: starting from the smoothed state, the
     positions and velocities are adjusted (Gauss-Newton) so that the first `window` samples of
     the rollout match the measurement. This removes most of the measurement noise from the initial
     velocity, which otherwise dominates the rollout error of noisy data, for every model alike.
+
+    The Gauss-Newton Jacobian is taken by forward differences: every iteration rolls out each run
+    and its `2k` perturbed initial states as one batch of plain (undifferentiated) solves, and the
+    unperturbed rollout of the last iteration is the result. One solver loop to trace and compile,
+    a fraction of what differentiating through the solver costs; the minimiser is the same.
+    Velocity changes across the constraints are projected away by the rollout, so the
+    least-squares problem is rank-deficient: the steps are minimum-norm (SVD).
     """
+    runs, k = x0.shape
+    n = 2 * k
+    start = jnp.concatenate([x0, xd0], axis=1)  # (runs, 2k)
+    # between the truncation error of the differences and the projection's Newton tolerance
+    relative_step = jnp.cbrt(jnp.finfo(start.dtype).eps)
+    target = measured[:, : window + 1].reshape(runs, -1)
+    # one rollout after another: batching the solver's nested loops costs more tracing and
+    # compilation than the few hundred short rollouts of a fit take to run
+    roll = lambda ys, controls: jax.lax.map(
+        lambda a: rollout(model, a[0][:k], a[0][k:], a[1], dt).x, (ys, controls)
+    )
+    probe_us = jnp.repeat(us, n + 1, axis=0)
 
-    def one(x0, xd0, us, measured):
-        def residual(delta, _):
-            xs = _run(model, x0 + delta[0], xd0 + delta[1], us[: window + 1], dt)
-            return (xs - measured[: window + 1]).reshape(-1)
+    def cond(carry):
+        _, count, done, _ = carry
+        return (count < max_steps) & ~jnp.all(done)
 
-        zero = (jnp.zeros_like(x0), jnp.zeros_like(xd0))
-        # velocity changes across the constraints are projected away: a rank-deficient problem
-        solver = optx.GaussNewton(rtol=1e-6, atol=1e-9, linear_solver=lx.SVD(rcond=1e-8))
-        solution = optx.least_squares(residual, solver, zero, max_steps=20, throw=False)
-        delta = solution.value
-        converged = solution.result == optx.RESULTS.successful
-        return _run(model, x0 + delta[0], xd0 + delta[1], us, dt), converged
+    def body(carry):
+        y, count, done, _ = carry
+        h = relative_step * (1 + jnp.abs(y))  # (runs, 2k)
+        probes = y[:, None, :] + jnp.concatenate([jnp.zeros((runs, 1, n), y.dtype), jax.vmap(jnp.diag)(h)], 1)
+        xs = roll(probes.reshape(-1, n), probe_us).reshape((runs, n + 1) + measured.shape[1:])
+        window_xs = xs[:, :, : window + 1].reshape(runs, n + 1, -1)
+        jac = jnp.swapaxes((window_xs[:, 1:] - window_xs[:, :1]) / h[:, :, None], 1, 2)
+        delta = jax.vmap(lambda a, b: jnp.linalg.lstsq(a, b, rcond=1e-6)[0])(jac, window_xs[:, 0] - target)
+        small = jnp.linalg.norm(delta, axis=1) <= atol + rtol * jnp.linalg.norm(y, axis=1)
+        # a converged run keeps the state its rollout came from; so does every run on the last pass
+        keep = done | small | (count + 1 >= max_steps)
+        return jnp.where(keep[:, None], y, y - delta), count + 1, done | small, xs[:, 0]
 
-    # one run after another: batching the Gauss-Newton fit and the projections through their custom
-    # derivatives costs more tracing and compilation than the rollouts of a few dozen runs take
-    return jax.lax.map(lambda args: one(*args), (x0, xd0, us, measured))
+    empty = jnp.zeros((runs,) + measured.shape[1:], measured.dtype)
+    _, _, converged, xs = jax.lax.while_loop(cond, body, (start, 0, jnp.zeros(runs, bool), empty))
+    return xs, converged
 
 
 def rollout_errors(

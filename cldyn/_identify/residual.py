@@ -75,4 +75,7 @@ class Features(eqx.Module):
 @eqx.filter_jit
 def evaluate(pieces: Residual | Features, x, xd, u, q):
     """`pieces` at every sample of every run: arrays `(runs, T, ...)`."""
-    return jax.vmap(jax.vmap(pieces))(x, xd, u, q)
+    # one batch of all samples: a second level of batching costs tracing and compilation
+    batch = x.shape[:2]
+    flat = jax.vmap(pieces)(*(a.reshape((-1,) + a.shape[2:]) for a in (x, xd, u, q)))
+    return jax.tree.map(lambda a: a.reshape(batch + a.shape[1:]), flat)
