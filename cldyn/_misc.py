@@ -49,28 +49,14 @@ def atomic_write(path: "str | os.PathLike", data: bytes | str) -> pathlib.Path:
     """Write `data` to `path` so that a reader sees either the old file or the whole new one.
 
     The data go to a temporary file in the same directory, are flushed to disk (`fsync`) and then
-    renamed over `path` (`os.replace`, atomic on POSIX). The file gets the permissions a plain
-    `open(path, "w")` would give (the process's umask), not the private mode of temporary files.
+    renamed over `path` (`os.replace`, atomic on POSIX), as `atomic_save` does. The file gets the
+    permissions a plain `open(path, "w")` would give (the process's umask), not the private mode of
+    temporary files.
 
     **Returns:** the path written.
     """
-    path = pathlib.Path(path)
-    if isinstance(data, str):
-        data = data.encode()
-    path.parent.mkdir(parents=True, exist_ok=True)
-    handle, temporary = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    try:
-        with os.fdopen(handle, "wb") as file:
-            file.write(data)
-            file.flush()
-            os.fsync(file.fileno())
-        os.chmod(temporary, 0o666 & ~_umask())
-        os.replace(temporary, path)
-    except BaseException:
-        if os.path.exists(temporary):
-            os.unlink(temporary)
-        raise
-    return path
+    payload = data.encode() if isinstance(data, str) else data
+    return atomic_save(path, lambda temporary: temporary.write_bytes(payload))
 
 
 def atomic_save(path: "str | os.PathLike", write: Callable[[pathlib.Path], object]) -> pathlib.Path:

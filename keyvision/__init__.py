@@ -14,11 +14,18 @@ from ._estimator import (
     KeypointEstimatorFC as KeypointEstimatorFC,
 )
 from ._evaluate import (
+    draw_keypoints as draw_keypoints,
     keypoint_tracking as keypoint_tracking,
     pose_features as pose_features,
     predict as predict,
+    predict_keypoints as predict_keypoints,
     prediction_threshold as prediction_threshold,
     valid_prediction_time as valid_prediction_time,
+)
+from ._files import (
+    load_model as load_model,
+    model_from_spec as model_from_spec,
+    save_model as save_model,
 )
 from ._keypoints import (
     frame_to_pixel as frame_to_pixel,

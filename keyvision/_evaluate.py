@@ -1,6 +1,8 @@
 """Evaluation of KeyCLD models on frames: prediction, the valid prediction time (eq. 16), and
 diagnostics of learned keypoints against the ground truth rendered with the frames."""
 
+from collections.abc import Sequence
+
 import diffrax as dfx
 import jax.numpy as jnp
 import numpy as np
@@ -9,6 +11,7 @@ from jaxtyping import Array, ArrayLike, Float
 import cldyn
 
 from ._data import Frames
+from ._keypoints import frame_to_pixel
 from ._model import KeyCLD
 
 
@@ -171,6 +174,33 @@ def valid_prediction_time(
     return first / samples
 
 
+def predict_keypoints(
+    model: KeyCLD,
+    images: Float[ArrayLike, "T H W C"],
+    controls: Float[ArrayLike, "T l"],
+    dt: float,
+    *,
+    solver: dfx.AbstractSolver = cldyn.RK4(),
+    stabilisation: cldyn.AbstractStabilisation | None = cldyn.Projection(),
+) -> Float[Array, "T k"]:
+    """The keypoints that `predict` renders: frame 0 encoded, frames `1 .. T-1` integrated.
+
+    Takes the arguments of `predict` (see there); returns `(T, k)` keypoints in the image frame,
+    aligned with `images`. `draw_keypoints` marks them on frames.
+    """
+    images, controls = jnp.asarray(images), jnp.asarray(controls)
+    if images.ndim != 4 or images.shape[0] < 3:
+        raise ValueError(f"predict: images must be (T, H, W, C) with T >= 3 frames, got {images.shape}")
+    if controls.ndim != 2 or controls.shape[0] != images.shape[0]:
+        raise ValueError(f"predict: controls must be ({images.shape[0]}, l), got {controls.shape}")
+    x = model.encode(images[:3])
+    run = cldyn.rollout(
+        model.dynamics, x[1], (x[2] - x[0]) / (2 * dt), controls[1:].astype(x.dtype), dt,
+        solver=solver, stabilisation=stabilisation, project=True,
+    )
+    return jnp.concatenate([x[:1], run.x], axis=0)
+
+
 def predict(
     model: KeyCLD,
     images: Float[ArrayLike, "T H W C"],
@@ -209,14 +239,71 @@ def predict(
         vpt = keyvision.valid_prediction_time(predicted, images)
         ```
     """
-    images, controls = jnp.asarray(images), jnp.asarray(controls)
-    if images.ndim != 4 or images.shape[0] < 3:
-        raise ValueError(f"predict: images must be (T, H, W, C) with T >= 3 frames, got {images.shape}")
-    if controls.ndim != 2 or controls.shape[0] != images.shape[0]:
-        raise ValueError(f"predict: controls must be ({images.shape[0]}, l), got {controls.shape}")
-    x = model.encode(images[:3])
-    run = cldyn.rollout(
-        model.dynamics, x[1], (x[2] - x[0]) / (2 * dt), controls[1:].astype(x.dtype), dt,
-        solver=solver, stabilisation=stabilisation, project=True,
-    )
-    return model.decode(jnp.concatenate([x[:1], run.x], axis=0))
+    keypoints = predict_keypoints(model, images, controls, dt, solver=solver, stabilisation=stabilisation)
+    return model.decode(keypoints)
+
+
+def draw_keypoints(
+    frames: Float[ArrayLike, "*batch H W 3"],
+    keypoints: Float[ArrayLike, "*batch k"],
+    *,
+    radius: int = 1,
+    colors: Sequence[tuple[float, float, float]] | None = None,
+) -> np.ndarray:
+    """Frames with their keypoints marked: a filled square of `2 radius + 1` pixels on each.
+
+    For looking at what the estimator tracks. A keypoint at image-frame point `(x, y)` (DESIGN.md:
+    `[-1, 1]`, y up) marks the pixel `keyvision.frame_to_pixel` rounds it to and its neighbours
+    within `radius`; keypoints outside the image are left out.
+
+    **Arguments:**
+
+    - `frames`: images with values in `[0, 1]` (float) or `0..255` (uint8), `(..., H, W, 3)`.
+    - `keypoints`: `(..., 2K)` keypoints `(x0, y0, x1, y1, ...)` in the image frame, one set per frame.
+    - `radius`: half the side of each mark, in pixels.
+    - `colors`: an RGB colour in `[0, 1]` per keypoint; a fixed palette by default.
+
+    **Returns:** uint8 frames `(..., H, W, 3)` with the marks.
+
+    !!! example
+
+        ```python
+        marked = keyvision.draw_keypoints(images[0], model.encode(images[0]))   # (T, H, W, 3) uint8
+        ```
+    """
+    frames, keypoints = np.asarray(frames), np.asarray(keypoints, dtype=float)
+    if frames.ndim < 3 or frames.shape[-1] != 3 or keypoints.shape[-1] % 2:
+        raise ValueError(
+            f"draw_keypoints: frames must be (..., H, W, 3) and keypoints (..., 2K), got {frames.shape} "
+            f"and {keypoints.shape}"
+        )
+    if frames.shape[:-3] != keypoints.shape[:-1]:
+        raise ValueError(
+            f"draw_keypoints: {frames.shape[:-3]} frames but keypoints for {keypoints.shape[:-1]}"
+        )
+    if radius < 0:
+        raise ValueError(f"draw_keypoints: radius must be >= 0, got {radius}")
+    if frames.dtype == np.uint8:
+        out = frames.copy()
+    else:
+        out = np.round(255 * np.clip(frames, 0, 1)).astype(np.uint8)
+    height, width = out.shape[-3:-1]
+    points = keypoints.reshape(keypoints.shape[:-1] + (-1, 2))
+    palette = np.asarray(_PALETTE if colors is None else colors, dtype=float)
+    if colors is not None and palette.shape != (points.shape[-2], 3):
+        raise ValueError(
+            f"draw_keypoints: colors must hold one RGB colour per keypoint, ({points.shape[-2]}, 3), got "
+            f"{palette.shape}"
+        )
+    pixels = np.round(np.asarray(frame_to_pixel(points, height, width))).astype(int)  # (..., K, 2)
+    flat_out, flat_pixels = out.reshape(-1, height, width, 3), pixels.reshape(-1, points.shape[-2], 2)
+    for frame, marks in zip(flat_out, flat_pixels):
+        for index, (row, col) in enumerate(marks):
+            if not (0 <= row < height and 0 <= col < width):
+                continue
+            colour = np.round(255 * palette[index % len(palette)]).astype(np.uint8)
+            frame[max(row - radius, 0) : row + radius + 1, max(col - radius, 0) : col + radius + 1] = colour
+    return out
+
+
+_PALETTE = ((1.0, 0.0, 0.0), (0.0, 0.8, 1.0), (1.0, 1.0, 0.0), (0.0, 1.0, 0.0), (1.0, 0.0, 1.0))

@@ -181,3 +181,7 @@ def test_render_train_evaluate(tmp_path, capsys):
     truth = np.concatenate(list(frames.frames[1]), axis=1)
     np.testing.assert_array_equal(strip[:16], truth)
     assert os.path.getsize(results / "mse.png") > 0
+    # the GIF: every frame, true (with the estimated keypoint) beside predicted, four times enlarged
+    movie = imageio.imread(results / "prediction.gif", index=None)
+    assert movie.shape[:3] == (6, 4 * 16, 2 * 4 * 16)
+    assert np.isfinite(record["keypoint_tracking_r2"]) and record["keypoint_tracking_r2"] <= 1

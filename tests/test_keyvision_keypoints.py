@@ -92,3 +92,28 @@ def test_softmax_of_log_gaussian_map_returns_the_keypoint():
     maps = keyvision.gaussian_maps(points, SIZE, SIZE, sigma=0.1)
     recovered = keyvision.spatial_softmax(jnp.log(maps))
     np.testing.assert_allclose(np.asarray(recovered), np.asarray(points), atol=ALIASING_TOL)
+
+
+# -- keypoints drawn on frames ---------------------------------------------------------------------
+
+
+def test_draw_keypoints_marks_the_pixel_of_each_point_and_moves_with_it():
+    frames = np.zeros((2, 16, 16, 3))
+    # keypoint 0 at the centre of pixel (row 3, col 10); keypoint 1 at the centre of pixel (12, 1)
+    points = np.asarray(keyvision.pixel_to_frame(np.array([[3.0, 10.0], [12.0, 1.0]]), 16, 16)).reshape(-1)
+    marked = keyvision.draw_keypoints(frames, np.stack([points, points + np.array([2 / 16, 0, 0, -4 / 16])]),
+                                      radius=0, colors=[(1, 0, 0), (0, 0, 1)])
+    assert marked.dtype == np.uint8 and marked.shape == frames.shape
+    assert np.argwhere(marked[0, ..., 0] == 255).tolist() == [[3, 10]]
+    assert np.argwhere(marked[0, ..., 2] == 255).tolist() == [[12, 1]]
+    assert marked[0].sum() == 2 * 255
+    # one pixel right (x + 2/16) and two pixels down (y - 4/16) in the second frame
+    assert np.argwhere(marked[1, ..., 0] == 255).tolist() == [[3, 11]]
+    assert np.argwhere(marked[1, ..., 2] == 255).tolist() == [[14, 1]]
+    # a radius of 1 paints 3 x 3 pixels, clipped at the border; a point outside the image paints nothing
+    wide = keyvision.draw_keypoints(frames[0], np.array([-1.0, 1.0, 5.0, 0.0]), radius=1)
+    assert int((wide.sum(axis=-1) > 0).sum()) == 4
+    with pytest.raises(ValueError, match="one RGB colour per keypoint"):
+        keyvision.draw_keypoints(frames[0], points, colors=[(1, 0, 0)])
+    with pytest.raises(ValueError, match=r"\(\.\.\., 2K\)"):
+        keyvision.draw_keypoints(frames[0], points[:3])

@@ -259,3 +259,49 @@ def test_predict_starts_from_the_reconstruction_and_scores_a_vpt(trained):
     vpt = keyvision.valid_prediction_time(predicted, images, threshold=keyvision.prediction_threshold(images))
     assert vpt.shape == (4,)
     assert bool(jnp.all((vpt >= 0) & (vpt <= 1)))
+
+
+# -- sharding --------------------------------------------------------------------------------------
+
+SHARDING_TOL = 1e-4  # keypoints (image-frame units) and pixels: float32 sums split in two, reordered
+_SHARDED = """
+import sys, dataclasses, jax, numpy as np, equinox as eqx
+sys.path.insert(0, {tests!r})
+import keyvision, test_keyvision_model as t
+assert len(jax.devices()) == 2, jax.devices()
+frames, controls, _ = t.pendulum_frames(8, 8)
+data = keyvision.ImageSequences(frames, controls, t.DT)
+model = t._model(jax.random.key(0), width=4)
+schedule = dataclasses.replace(t.SCHEDULE, autoencoder_steps=1, autoencoder_batch=8, dynamics_steps=1,
+                               dynamics_batch=4, joint_steps=1, joint_batch=4, window=6, log_every=1)
+results = [keyvision.train(model, data, key=jax.random.key(1), schedule=schedule, devices=d)
+           for d in (jax.devices()[:1], jax.devices())]
+# the functions, not the parameters: a convolution's bias before a GroupNorm has no gradient but
+# rounding noise, which Adam turns into steps of the learning rate's size in either run; and one step
+# per stage, since Adam's normalisation amplifies the reordered sums' rounding from step to step
+images = data.images()[:, ::3]
+def outputs(m):
+    m = jax.device_get(m)  # the two-device run's parameters are replicated over both
+    keypoints = eqx.filter_jit(m.encode)(images)
+    return np.asarray(keypoints), np.asarray(eqx.filter_jit(m.decode)(keypoints))
+one, two, start = outputs(results[0].model), outputs(results[1].model), outputs(model)
+moved = max(float(np.max(np.abs(a - b))) for a, b in zip(one, start))
+error = max(float(np.max(np.abs(a - b))) for a, b in zip(one, two))
+print(error, moved, results[1].stages["joint"].settings["devices"])
+"""
+
+
+@pytest.mark.slow
+def test_training_sharded_over_two_devices_equals_one():
+    import os
+    import pathlib
+    import subprocess
+    import sys
+
+    flags = os.environ.get("XLA_FLAGS", "") + " --xla_force_host_platform_device_count=2"
+    env = dict(os.environ, XLA_FLAGS=flags.strip(), JAX_PLATFORMS="cpu")
+    script = _SHARDED.format(tests=str(pathlib.Path(__file__).parent))
+    run = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, env=env, timeout=600)
+    assert run.returncode == 0, run.stderr[-3000:]
+    error, moved, devices = run.stdout.split()[-3:]
+    assert float(error) < SHARDING_TOL and float(moved) > 100 * SHARDING_TOL and devices == "2"

@@ -1,5 +1,7 @@
 """The estimators and renderers of appendix A.4: shapes, translation equivariance, finite gradients."""
 
+import json
+
 import equinox as eqx
 import jax
 import jax.numpy as jnp
@@ -132,3 +134,55 @@ def test_wrong_shapes_and_sizes_are_refused():
         keyvision.Renderer(2, image_size=30, key=jax.random.key(0))
     with pytest.raises(ValueError, match="width"):
         keyvision.KeypointEstimator(2, width=0, key=jax.random.key(0))
+
+
+# -- model files ---------------------------------------------------------------------------------
+
+SPEC = {
+    "keypoints": 2,
+    "width": 4,
+    "image_size": 16,
+    "dynamics": {
+        "kind": "keycld",
+        "size": 4,
+        "num_inputs": 1,
+        "constraint": "acrobot",
+        "width": 8,
+        "depth": 1,
+    },
+}
+
+
+def test_saved_model_loads_bitwise_and_bad_files_are_refused(tmp_path):
+    model = keyvision.model_from_spec(SPEC, key=jax.random.key(3))
+    assert {a.dtype for a in jax.tree.leaves(eqx.filter(model, eqx.is_inexact_array))} == {
+        jnp.dtype("float32")
+    }
+    # perturb the parameters so that a rebuilt untrained model could not pass for the saved one
+    model = jax.tree.map(lambda a: a + 0.5 if eqx.is_inexact_array(a) else a, model)
+    keyvision.save_model(tmp_path / "m", model, {**SPEC, "note": "kept"})
+    loaded, spec = keyvision.load_model(tmp_path / "m")
+    assert spec["note"] == "kept"
+    for a, b in zip(
+        jax.tree.leaves(eqx.filter(model, eqx.is_array)), jax.tree.leaves(eqx.filter(loaded, eqx.is_array))
+    ):
+        assert a.dtype == b.dtype and np.array_equal(np.asarray(a), np.asarray(b))
+    with pytest.raises(FileNotFoundError, match="no such directory"):
+        keyvision.load_model(tmp_path / "nothing")
+    with pytest.raises(ValueError, match="does not match"):
+        keyvision.save_model(tmp_path / "other", model, {**SPEC, "width": 8})
+    assert not (tmp_path / "other").exists()
+    with pytest.raises(KeyError, match="image_size"):
+        keyvision.model_from_spec({k: v for k, v in SPEC.items() if k != "image_size"}, key=jax.random.key(0))
+    # a truncated parameter file, then a description whose sizes do not fit the parameters
+    parameters = (tmp_path / "m" / "model.eqx").read_bytes()
+    (tmp_path / "m" / "model.eqx").write_bytes(parameters[: len(parameters) // 2])
+    with pytest.raises(ValueError, match="model.eqx: cannot load"):
+        keyvision.load_model(tmp_path / "m")
+    (tmp_path / "m" / "model.eqx").write_bytes(parameters)
+    (tmp_path / "m" / "keyvision.json").write_text(json.dumps({**SPEC, "width": 8}))
+    with pytest.raises(ValueError, match="model.eqx: cannot load"):
+        keyvision.load_model(tmp_path / "m")
+    (tmp_path / "m" / "keyvision.json").write_text("{not json")
+    with pytest.raises(ValueError, match="keyvision.json: unreadable"):
+        keyvision.load_model(tmp_path / "m")

@@ -25,6 +25,7 @@ def _rollout_batch(
     dt: float,
     measured,
     window: int,
+    *,
     max_steps: int = 20,
     rtol: float = 1e-6,
     atol: float = 1e-9,

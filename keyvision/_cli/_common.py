@@ -2,14 +2,13 @@
 and how a model directory is rebuilt (its `keyvision.json` names every size, `model.eqx` holds the
 parameters)."""
 
-import json
 import pathlib
 
 from cldyn._cli._common import CommandError, input_file
 
+from .._files import MODEL_NAME, SPEC_NAME
+
 FRAMES_NAME = "frames.npz"  # what `keyvision render` writes into --out
-SPEC_NAME = "keyvision.json"  # the model's sizes, the dynamics' cldyn spec, the data and the schedule
-MODEL_NAME = "model.eqx"  # the trained parameters
 
 
 def frames_file(path: str, option: str) -> pathlib.Path:
@@ -18,27 +17,6 @@ def frames_file(path: str, option: str) -> pathlib.Path:
     if file.is_dir():
         file = file / FRAMES_NAME
     return input_file(file, option)
-
-
-def build_model(spec: dict, *, key):
-    """The untrained float32 `KeyCLD` of a spec: the paper's estimator and renderer (U-Nets of
-    `width`) and the cldyn dynamics of `spec["dynamics"]` (`cldyn.model_from_spec`)."""
-    import equinox as eqx
-    import jax
-    import jax.numpy as jnp
-
-    import cldyn
-    import keyvision
-
-    keys = jax.random.split(key, 3)
-    sizes = {"width": spec["width"], "image_size": spec["image_size"]}
-    model = keyvision.KeyCLD(
-        keyvision.KeypointEstimator(spec["keypoints"], **sizes, key=keys[0]),
-        cldyn.model_from_spec(spec["dynamics"], key=keys[1]),
-        keyvision.Renderer(spec["keypoints"], **sizes, key=keys[2]),
-    )
-    # float32 even where JAX's 64-bit mode is on (the networks' and the images' precision)
-    return jax.tree.map(lambda a: a.astype(jnp.float32) if eqx.is_inexact_array(a) else a, model)
 
 
 def model_files(directory: str, option: str) -> tuple[pathlib.Path, pathlib.Path]:
@@ -54,20 +32,11 @@ def model_files(directory: str, option: str) -> tuple[pathlib.Path, pathlib.Path
 
 
 def load_model(directory: str, option: str):
-    """`(model, spec)` of a directory written by `keyvision train`."""
-    import equinox as eqx
-    import jax
+    """`(model, spec)` of a directory written by `keyvision train` (`keyvision.load_model`)."""
+    import keyvision
 
-    spec_path, model_path = model_files(directory, option)
+    model_files(directory, option)
     try:
-        spec = json.loads(spec_path.read_text())
-        like = build_model(spec, key=jax.random.key(0))
-    except (OSError, UnicodeDecodeError, json.JSONDecodeError, KeyError, TypeError) as error:
-        raise CommandError(f"{spec_path}: unreadable model description ({error!r})") from None
-    try:
-        model = eqx.tree_deserialise_leaves(model_path, like)
-    except Exception as error:  # a truncated or mismatched file; equinox raises several types
-        raise CommandError(
-            f"{model_path}: cannot load the trained model ({type(error).__name__}: {error})"
-        ) from None
-    return model, spec
+        return keyvision.load_model(directory)
+    except (FileNotFoundError, ValueError) as error:
+        raise CommandError(str(error)) from None

@@ -1,5 +1,6 @@
 """`keyvision evaluate`: the valid prediction time of a trained model on the validation runs, the
-error over time and a strip of true and predicted frames."""
+error over time, a strip and a GIF of true and predicted frames with their keypoints, and how well the
+keypoints track the true pose."""
 
 import argparse
 import json
@@ -10,8 +11,9 @@ from cldyn._cli._common import CommandError, add_command, add_overwrite, output_
 
 from ._common import frames_file, model_files
 
-_RESULTS = ("vpt.json", "mse.png", "strip.png")
+_RESULTS = ("vpt.json", "mse.png", "strip.png", "prediction.gif")
 _STRIP_FRAMES = 10  # frames shown in the strip, evenly spaced over the run
+_GIF_SCALE = 4  # pixels per frame pixel in the GIF
 
 
 def register(subparsers) -> None:
@@ -25,7 +27,10 @@ def register(subparsers) -> None:
         "rendered) and score the valid prediction time (VPT, the paper's eq. 16: the first frame whose "
         "error exceeds that of the dataset's mean image, as a fraction of the run). Prints the mean, "
         "median and standard deviation over the runs; writes vpt.json, mse.png (the error over time, "
-        "the paper's figure 3) and strip.png (true frames over predicted ones, figure 4) to --out.",
+        "the paper's figure 3), strip.png (true frames over predicted ones, figure 4) and prediction.gif "
+        "(true and predicted frames side by side, with the estimated and the predicted keypoints) to "
+        "--out. Where the frames carry their ground truth, also the held-out R^2 of an affine map from "
+        "the keypoints to the true pose (keyvision.keypoint_tracking).",
     )
     parser.add_argument("--model", required=True, help="the directory keyvision train wrote")
     parser.add_argument("--data", required=True, help="frames.npz, or the directory keyvision render wrote")
@@ -44,13 +49,19 @@ def register(subparsers) -> None:
 
 
 def _predict(model, images, controls, dt: float, batch: int):
-    """Every run predicted, `batch` runs per compiled call (the last call padded to the same shape)."""
+    """Every run's predicted keypoints and frames, `batch` runs per compiled call (the last call
+    padded to the same shape)."""
     import equinox as eqx
     import jax
 
     import keyvision
 
-    predict = eqx.filter_jit(jax.vmap(keyvision.predict, in_axes=(None, 0, 0, None)))
+    @eqx.filter_jit
+    @jax.vmap
+    def predict(z, u):
+        keypoints = keyvision.predict_keypoints(model, z, u, dt)
+        return keypoints, model.decode(keypoints)
+
     runs = images.shape[0]
     batch = min(batch, runs)
     parts = []
@@ -59,8 +70,8 @@ def _predict(model, images, controls, dt: float, batch: int):
         missing = batch - z.shape[0]
         if missing:
             z, u = (np.concatenate([a, np.repeat(a[-1:], missing, axis=0)]) for a in (z, u))
-        parts.append(np.asarray(predict(model, z, u, dt))[: batch - missing])
-    return np.concatenate(parts)
+        parts.append([np.asarray(a)[: batch - missing] for a in predict(z, u)])
+    return tuple(np.concatenate(arrays) for arrays in zip(*parts))
 
 
 def _plot_mse(path, ts, mse, threshold: float) -> None:
@@ -89,6 +100,74 @@ def _strip(path, truth, predicted) -> None:
     rows = [np.concatenate(list(frames[shown]), axis=1) for frames in (truth, predicted)]
     strip = np.round(255 * np.clip(np.concatenate(rows, axis=0), 0, 1)).astype(np.uint8)
     atomic_save(path, lambda temporary: imageio.imwrite(temporary, strip, extension=".png"))
+
+
+def _gif(path, truth, predicted, estimated, predicted_keypoints, dt: float) -> None:
+    """True frames with the estimated keypoints beside predicted frames with the predicted ones."""
+    import keyvision
+    from cldyn._misc import atomic_save, optional_import
+
+    imageio = optional_import("imageio.v3", purpose="keyvision evaluate's GIF")
+    pairs = [
+        keyvision.draw_keypoints(np.repeat(np.repeat(frames, _GIF_SCALE, -3), _GIF_SCALE, -2), keypoints)
+        for frames, keypoints in ((truth, estimated), (predicted, predicted_keypoints))
+    ]
+    movie = np.concatenate(pairs, axis=-2)
+    atomic_save(
+        path,
+        lambda temporary: imageio.imwrite(temporary, movie, extension=".gif", duration=1000 * dt, loop=0),
+    )
+
+
+def report(model, validation, out, *, batch: int = 8, strip_run: int = 0) -> tuple[dict, str]:
+    """Predict every run of `validation` (`keyvision.Frames`), score the VPT, write mse.png,
+    strip.png and prediction.gif to `out`; returns the record for vpt.json and a summary line."""
+    import keyvision
+
+    images = validation.images(np.float32)
+    controls = validation.u.astype(np.float32)
+    predicted_keypoints, predicted = _predict(model, images, controls, validation.dt, batch)
+    import equinox as eqx
+    import jax
+
+    estimated = np.asarray(eqx.filter_jit(jax.vmap(model.encode))(images))
+    threshold = keyvision.prediction_threshold(images)
+    vpt = np.asarray(keyvision.valid_prediction_time(predicted, images, threshold=threshold))
+    mse = np.mean((predicted - images) ** 2, axis=(-3, -2, -1))
+    summary = {"mean": float(vpt.mean()), "median": float(np.median(vpt)), "std": float(vpt.std())}
+    record = {
+        "vpt": summary,
+        "vpt_per_run": vpt.tolist(),
+        "threshold": threshold,
+        "mse_over_time": mse.mean(axis=0).tolist(),
+        "runs": validation.num_runs,
+        "frames": validation.num_frames,
+        "dt": validation.dt,
+        "strip_run": strip_run,
+    }
+    if "qpos" in validation.extras:
+        # the held-out R^2 of an affine map from the keypoints of the true frames to the true pose,
+        # fitted on the first half of the frames (runs in order) and scored on the rest
+        pose = keyvision.pose_features(validation)
+        record["keypoint_tracking_r2"] = keyvision.keypoint_tracking(
+            estimated.reshape(-1, estimated.shape[-1]), pose.reshape(-1, pose.shape[-1])
+        )
+    _plot_mse(out / "mse.png", validation.ts, mse, threshold)
+    _strip(out / "strip.png", images[strip_run], predicted[strip_run])
+    pick = (images, predicted, estimated, predicted_keypoints)
+    _gif(out / "prediction.gif", *(a[strip_run] for a in pick), validation.dt)
+    line = (
+        f"VPT over {validation.num_runs} validation runs of {validation.num_frames} frames: mean "
+        f"{summary['mean']:.3f}, median {summary['median']:.3f}, std {summary['std']:.3f} (threshold "
+        f"{threshold:.4g})"
+        + (
+            f"; keypoint tracking R^2 {record['keypoint_tracking_r2']:.3f}"
+            if "keypoint_tracking_r2" in record
+            else ""
+        )
+        + f"; wrote {', '.join(_RESULTS)} to {out}"
+    )
+    return record, line
 
 
 def run(args: argparse.Namespace) -> int:
@@ -124,32 +203,8 @@ def run(args: argparse.Namespace) -> int:
         )
     if validation.num_frames < 3:
         raise CommandError(f"--data: runs of {validation.num_frames} frames; a prediction starts from 3")
-    images = validation.images(np.float32)
-    controls = validation.u.astype(np.float32)
-    predicted = _predict(model, images, controls, validation.dt, args.batch)
-    threshold = keyvision.prediction_threshold(images)
-    vpt = np.asarray(keyvision.valid_prediction_time(predicted, images, threshold=threshold))
-    mse = np.mean((predicted - images) ** 2, axis=(-3, -2, -1))
-    summary = {"mean": float(vpt.mean()), "median": float(np.median(vpt)), "std": float(vpt.std())}
-    record = {
-        "vpt": summary,
-        "vpt_per_run": vpt.tolist(),
-        "threshold": threshold,
-        "mse_over_time": mse.mean(axis=0).tolist(),
-        "runs": validation.num_runs,
-        "frames": validation.num_frames,
-        "dt": validation.dt,
-        "model": str(args.model),
-        "data": str(data_path),
-        "scene": frames.info.get("scene"),
-        "strip_run": args.strip_run,
-    }
+    record, line = report(model, validation, out, batch=args.batch, strip_run=args.strip_run)
+    record.update(model=str(args.model), data=str(data_path), scene=frames.info.get("scene"))
     atomic_write(out / "vpt.json", json.dumps(record, indent=1))
-    _plot_mse(out / "mse.png", validation.ts, mse, threshold)
-    _strip(out / "strip.png", images[args.strip_run], predicted[args.strip_run])
-    print(
-        f"VPT over {validation.num_runs} validation runs of {validation.num_frames} frames: mean "
-        f"{summary['mean']:.3f}, median {summary['median']:.3f}, std {summary['std']:.3f} (threshold "
-        f"{threshold:.4g}); wrote {', '.join(_RESULTS)} to {out}"
-    )
+    print(line)
     return 0

@@ -8,16 +8,16 @@ import argparse
 
 from cldyn._cli._main import main as _cldyn_main
 
-from . import _evaluate, _render, _train
+from . import _demo, _evaluate, _render, _train
 
-_COMMANDS = (_render, _train, _evaluate)
+_COMMANDS = (_render, _train, _evaluate, _demo)
 
 
 def build_parser() -> argparse.ArgumentParser:
     """The argument parser with every command."""
     parser = argparse.ArgumentParser(
         prog="keyvision",
-        description="Learn constrained Lagrangian dynamics from images (KeyCLD): render, train, evaluate.",
+        description="Learn constrained Lagrangian dynamics from images (KeyCLD).",
     )
     parser.add_argument("--version", action="store_true", help="print the version and exit")
     subparsers = parser.add_subparsers(dest="command", metavar="<command>")

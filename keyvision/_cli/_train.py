@@ -166,8 +166,6 @@ def run(args: argparse.Namespace) -> int:
     import keyvision
     from cldyn._misc import atomic_save, atomic_write
 
-    from ._common import build_model
-
     frames = keyvision.Frames.load(data_path)
     spec = _model_spec(args, frames)
     _check_frames(args, frames)
@@ -207,7 +205,7 @@ def run(args: argparse.Namespace) -> int:
             )
     model_key, train_key = jax.random.split(jax.random.key(args.seed))
     try:
-        model = build_model(spec, key=model_key)
+        model = keyvision.model_from_spec(spec, key=model_key)
     except ValueError as error:
         raise CommandError(f"--constraint {spec['dynamics']['constraint']}: {error}") from None
     validation = None
