@@ -19,7 +19,7 @@ lint: $(STAMP)
 	$(BIN)/ruff check cldyn keyvision tests benchmarks examples docs
 
 test: lint
-	$(BIN)/python -m pytest -q -n 2
+	$(BIN)/python -m pytest -q -n 2 --dist loadgroup
 
 test-fast: $(STAMP)
 	$(BIN)/python -m pytest -q -m "not slow"

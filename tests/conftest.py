@@ -32,3 +32,9 @@ def _dtype_promotion(request):
             yield
     else:
         yield
+
+
+def pytest_collection_modifyitems(config, items):
+    """The slow tests first: the two workers share the long ones, and the short ones even out the
+    end of the run instead of one long test keeping a worker busy after the other has finished."""
+    items.sort(key=lambda item: item.get_closest_marker("slow") is None)

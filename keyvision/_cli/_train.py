@@ -78,6 +78,27 @@ def register(subparsers) -> None:
     )
     parser.add_argument("--window", type=count, default=default.window, help="frames per window of stage (c)")
     parser.add_argument("--lr", type=positive(), default=default.learning_rate, help="learning rate")
+    parser.add_argument(
+        "--autoencoder-batch",
+        type=count,
+        default=default.autoencoder_batch,
+        help="frames per step of stage (a)",
+    )
+    parser.add_argument(
+        "--joint-batch", type=count, default=default.joint_batch, help="windows per step of stage (c)"
+    )
+    parser.add_argument(
+        "--dynamics-weight",
+        type=positive(allow_zero=True),
+        default=default.dynamics_weight,
+        help="weight of the dynamics loss in stage (c)",
+    )
+    parser.add_argument(
+        "--heatmap-weight",
+        type=positive(allow_zero=True),
+        default=default.heatmap_weight,
+        help="weight of the heatmap regulariser (0 leaves it out)",
+    )
     parser.add_argument("--seed", type=seed, default=0, help="seed of the model and the batches")
     parser.add_argument("--resume", action="store_true", help="continue the training in --out")
     parser.add_argument(
@@ -179,6 +200,10 @@ def run(args: argparse.Namespace) -> int:
         joint_steps=args.joint_steps,
         window=args.window,
         learning_rate=args.lr,
+        autoencoder_batch=args.autoencoder_batch,
+        joint_batch=args.joint_batch,
+        dynamics_weight=args.dynamics_weight,
+        heatmap_weight=args.heatmap_weight,
     )
     spec.update(
         seed=args.seed,

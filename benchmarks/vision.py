@@ -1,0 +1,146 @@
+"""KeyCLD from images: render, train and evaluate on the KeyCLD scenes; VPT, wall time, images/s.
+
+For each scene: `keyvision render` (the paper's protocol, or fewer runs), `keyvision train` (the three
+stages of `keyvision.train` with the sizes and steps given here) and `keyvision evaluate` (VPT over the
+validation runs, the error over time, a frame strip and a GIF). A step whose outputs already exist in
+`--out` is not run again (a finished training is reused; an interrupted one is resumed), so a budget
+can be spread over several calls. Training images/s counts the frames that pass through the estimator
+in a training step (stage (a): the batch; stage (c): windows x frames), over the stages' wall time.
+
+Writes benchmarks/results/vision.json and vision.md, copies each scene's mse.png, strip.png and
+prediction.gif to benchmarks/results/vision_<scene>_*; prints the JSON.
+
+    python benchmarks/vision.py --scenes pendulum --runs 250 --width 8 --autoencoder-steps 1500 \\
+        --autoencoder-batch 16 --heatmap-weight 0 --joint-steps 150 --joint-batch 4
+"""
+
+import argparse
+import json
+import os
+import pathlib
+import shutil
+import sys
+import time
+
+os.environ.setdefault("MUJOCO_GL", "egl")
+
+ROOT = pathlib.Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT / "benchmarks"))
+from _common import RESULTS, machine, write  # noqa: E402
+
+PAPER_VPT = {"pendulum": 0.38, "cartpole": 1.00, "acrobot": 1.00}  # Table 1, KeyCLD
+
+
+def _cli(*argv) -> None:
+    from keyvision._cli import main
+
+    status = main([str(a) for a in argv])
+    if status != 0:
+        raise SystemExit(f"keyvision {argv[0]} failed with status {status}")
+
+
+def _images_per_second(train: dict, schedule: dict) -> float | None:
+    stages = train.get("stages", {})
+    frames = 0
+    seconds = 0.0
+    for stage, per_step in (
+        ("autoencoder", schedule["autoencoder_batch"]),
+        ("joint", schedule["joint_batch"] * schedule["window"]),
+    ):
+        if stage in stages:
+            frames += stages[stage]["steps"] * per_step
+            seconds += stages[stage]["seconds"]
+    return frames / seconds if seconds else None
+
+
+def scene(name: str, args) -> dict:
+    out = pathlib.Path(args.out) / name
+    data, model, evaluation = out / "data", out / "model", out / "evaluate"
+    if not (data / "frames.npz").is_file():
+        _cli("render", "--scene", f"keycld/{name}", "--out", data, "--runs", args.runs)
+    trained = model / "model.eqx"
+    started = time.perf_counter()
+    if not trained.is_file():
+        options = ["--data", data, "--out", model, "--width", args.width, "--seed", args.seed]
+        for option in (
+            "autoencoder_steps",
+            "autoencoder_batch",
+            "dynamics_steps",
+            "joint_steps",
+            "joint_batch",
+            "heatmap_weight",
+            "dynamics_weight",
+        ):
+            options += [f"--{option.replace('_', '-')}", getattr(args, option)]
+        resume = ["--resume"] if (model / "keyvision.json").is_file() else []
+        _cli("train", *options, *resume)
+    train_seconds = time.perf_counter() - started
+    _cli("evaluate", "--model", model, "--data", data, "--out", evaluation, "--overwrite")
+    spec = json.loads((model / "keyvision.json").read_text())
+    vpt = json.loads((evaluation / "vpt.json").read_text())
+    stages = {}
+    for stage in ("autoencoder", "dynamics", "joint"):
+        history = model / f"history-{stage}.json"
+        if history.is_file():
+            records = json.loads(history.read_text())["records"]
+            last = records[-1] if records else {}
+            stages[stage] = {"steps": last.get("step"), "seconds": last.get("seconds")}
+    for figure in ("mse.png", "strip.png", "prediction.gif"):
+        shutil.copyfile(evaluation / figure, RESULTS / f"vision_{name}_{figure}")
+    return {
+        "scene": name,
+        "vpt": vpt["vpt"],
+        "paper_vpt": PAPER_VPT[name],
+        "keypoint_tracking_r2": vpt.get("keypoint_tracking_r2"),
+        "validation_runs": vpt["runs"],
+        "image_size": spec["image_size"],
+        "width": spec["width"],
+        "schedule": spec["schedule"],
+        "training_runs": spec.get("data", {}).get("runs"),
+        "train": {"stages": stages, "seconds_this_call": round(train_seconds, 1)},
+        "images_per_second": _images_per_second({"stages": stages}, spec["schedule"]),
+    }
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--scenes", nargs="+", default=["pendulum", "cartpole", "acrobot"])
+    parser.add_argument("--out", default=str(ROOT / "runs" / "bench-vision"))
+    parser.add_argument("--runs", type=int, default=500)
+    parser.add_argument("--width", type=int, default=32)
+    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--autoencoder-steps", type=int, default=2000)
+    parser.add_argument("--autoencoder-batch", type=int, default=64)
+    parser.add_argument("--dynamics-steps", type=int, default=2000)
+    parser.add_argument("--joint-steps", type=int, default=1000)
+    parser.add_argument("--joint-batch", type=int, default=8)
+    parser.add_argument("--heatmap-weight", type=float, default=0.1)
+    parser.add_argument("--dynamics-weight", type=float, default=1e-3)
+    args = parser.parse_args()
+    import jax
+
+    rows = [scene(name, args) for name in args.scenes]
+    result = {"machine": machine(), "device": str(jax.devices()[0]), "scenes": rows}
+    lines = [
+        "# KeyCLD from images",
+        "",
+        f"Device: {result['device']} ({result['machine']['cpus']} CPUs). VPT over the validation runs "
+        "(the paper's eq. 16); R^2: keypoint tracking (affine map to the true pose, held out).",
+        "",
+        "| scene | VPT mean | median | std | paper | R^2 | frames | width | training (s) | images/s |",
+        "| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |",
+    ]
+    for row in rows:
+        seconds = sum((s["seconds"] or 0) for s in row["train"]["stages"].values())
+        r2 = row["keypoint_tracking_r2"]
+        rate = row["images_per_second"]
+        vpt, size = row["vpt"], row["image_size"]
+        cells = [row["scene"], f"{vpt['mean']:.3f}", f"{vpt['median']:.3f}", f"{vpt['std']:.3f}"]
+        cells += [f"{row['paper_vpt']:.2f}", "-" if r2 is None else f"{r2:.3f}", f"{size}x{size}"]
+        cells += [str(row["width"]), f"{seconds:.0f}", "-" if rate is None else f"{rate:.1f}"]
+        lines.append("| " + " | ".join(cells) + " |")
+    write("vision", result, "\n".join(lines) + "\n")
+
+
+if __name__ == "__main__":
+    main()
