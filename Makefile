@@ -1,4 +1,5 @@
-# `make demo` and `make test` work on a fresh machine: they create .venv and install the project.
+# `make demo` and `make test` work on a fresh machine: they create .venv and install the project
+# (--no-compile: Python compiles the modules it imports, not every module of every dependency).
 PYTHON ?= python3
 VENV := .venv
 BIN := $(VENV)/bin
@@ -9,7 +10,7 @@ export MUJOCO_GL ?= egl
 
 $(STAMP): pyproject.toml
 	test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
-	$(BIN)/python -m pip install --quiet -e ".[mujoco,vision,dev]"
+	$(BIN)/python -m pip install --quiet --no-compile -e ".[mujoco,vision,dev]"
 	touch $(STAMP)
 
 demo: $(STAMP)

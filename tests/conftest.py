@@ -35,6 +35,8 @@ def _dtype_promotion(request):
 
 
 def pytest_collection_modifyitems(config, items):
-    """The slow tests first: the two workers share the long ones, and the short ones even out the
-    end of the run instead of one long test keeping a worker busy after the other has finished."""
-    items.sort(key=lambda item: item.get_closest_marker("slow") is None)
+    """Modules with slow tests first: the two workers share the long tests, and the short ones even
+    out the end of the run instead of one long test keeping a worker busy after the other has
+    finished. A module's tests stay together, so its module-scoped fixtures are built once."""
+    slow = {item.module.__name__ for item in items if item.get_closest_marker("slow") is not None}
+    items.sort(key=lambda item: item.module.__name__ not in slow)
