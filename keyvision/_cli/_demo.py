@@ -11,12 +11,19 @@ import importlib.resources
 import pathlib
 import time
 
-from cldyn._cli._common import add_command, add_overwrite, output_directory, positive, seed
+from cldyn._cli._common import CommandError, add_command, add_overwrite, output_directory, positive, seed
 
 from ._evaluate import report
 
 MODEL = "demo/pendulum"  # inside the keyvision package
 SCENE = "keycld/pendulum"
+# how the shipped model is made (docs/images.md); the demo refuses with these commands while it is missing
+RECIPE = (
+    "keyvision render --scene keycld/pendulum --out runs/pendulum-data --runs 250; "
+    "keyvision train --data runs/pendulum-data --out keyvision/demo/pendulum --width 8 "
+    "--autoencoder-steps 1500 --autoencoder-batch 16 --heatmap-weight 0 --dynamics-steps 1000 "
+    "--joint-steps 150 --joint-batch 4 --dynamics-weight 1e-4"
+)
 RESULTS = ("frames.npz", "vpt.json", "mse.png", "strip.png", "prediction.gif")
 
 
@@ -44,13 +51,17 @@ def run(args: argparse.Namespace) -> int:
     """Load the model, render new runs, predict, score, write the strip and the GIF."""
     import json
 
+    directory = model_directory()
+    if not (directory / "model.eqx").is_file():
+        raise CommandError(
+            f"no demo model in {directory} (this checkout does not ship one yet); make it with: {RECIPE}"
+        )
     out = output_directory(args.out, results=RESULTS, overwrite=args.overwrite)
     import cldyn
     import keyvision
     from cldyn._misc import atomic_write
 
     started = time.perf_counter()
-    directory = model_directory()
     model, spec = keyvision.load_model(directory)
     trained = spec.get("data", {})
     print(
