@@ -10,6 +10,7 @@ import jax.numpy as jnp
 from jaxtyping import PRNGKeyArray
 
 from ._custom_types import ArrayInput, Vector
+from ._nn import mlp
 from ._system import AbstractDynamics, check_array
 
 
@@ -46,7 +47,7 @@ class SecondOrderNeuralODE(AbstractDynamics):
                 f"need size > 0, num_inputs >= 0, width > 0, depth >= 0; got {size}, {num_inputs}, "
                 f"{width}, {depth}"
             )
-        self.mlp = eqx.nn.MLP(2 * size + num_inputs, size, width, depth, activation=jax.nn.celu, key=key)
+        self.mlp = mlp(2 * size + num_inputs, size, width, depth, activation=jax.nn.celu, key=key)
         self.dimension = size
         self.inputs = num_inputs
 

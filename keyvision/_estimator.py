@@ -8,6 +8,7 @@ import jax.numpy as jnp
 from jaxtyping import Array, Float, PRNGKeyArray
 
 from cldyn._misc import check_positive
+from cldyn._nn import linear
 
 from ._keypoints import spatial_softmax
 from ._unet import Block, UNet, max_pool
@@ -137,8 +138,8 @@ class KeypointEstimatorFC(AbstractKeypointEstimator):
         sizes = (channels, width, 2 * width, 4 * width, 8 * width)
         self.blocks = tuple(Block(sizes[i], sizes[i + 1], dtype=dtype, key=keys[i]) for i in range(4))
         flat = 8 * width * (image_size // 16) ** 2
-        self.hidden = eqx.nn.Linear(flat, hidden, dtype=dtype, key=keys[4])
-        self.output = eqx.nn.Linear(hidden, 2 * num_keypoints, dtype=dtype, key=keys[5])
+        self.hidden = linear(flat, hidden, dtype=dtype, key=keys[4])
+        self.output = linear(hidden, 2 * num_keypoints, dtype=dtype, key=keys[5])
         self.num_keypoints = num_keypoints
         self.image_size = image_size
         self.channels = channels

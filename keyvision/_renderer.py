@@ -8,6 +8,7 @@ import jax.numpy as jnp
 from jaxtyping import Array, Float, PRNGKeyArray
 
 from cldyn._misc import check_positive
+from cldyn._nn import conv2d, linear
 
 from ._keypoints import gaussian_maps
 from ._unet import Block, UNet, upsample
@@ -144,11 +145,11 @@ class RendererFC(AbstractRenderer):
             raise ValueError(f"RendererFC: image_size must be a multiple of 16, got {image_size}")
         keys = jax.random.split(key, 7)
         start = image_size // 16
-        self.hidden = eqx.nn.Linear(2 * num_keypoints, hidden, dtype=dtype, key=keys[0])
-        self.expand = eqx.nn.Linear(hidden, 8 * width * start**2, dtype=dtype, key=keys[1])
+        self.hidden = linear(2 * num_keypoints, hidden, dtype=dtype, key=keys[0])
+        self.expand = linear(hidden, 8 * width * start**2, dtype=dtype, key=keys[1])
         sizes = (8 * width, 8 * width, 4 * width, 2 * width, width)
         self.blocks = tuple(Block(sizes[i], sizes[i + 1], dtype=dtype, key=keys[2 + i]) for i in range(4))
-        self.head = eqx.nn.Conv2d(width, 3, 3, padding=1, dtype=dtype, key=keys[6])
+        self.head = conv2d(width, 3, 3, padding=1, dtype=dtype, key=keys[6])
         self.num_keypoints = num_keypoints
         self.image_size = image_size
         self.width = width

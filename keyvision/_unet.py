@@ -9,6 +9,8 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Float, PRNGKeyArray
 
+from cldyn._nn import conv2d
+
 _GROUPS = 8  # GroupNorm(8) of appendix A.4
 
 
@@ -30,7 +32,7 @@ class Block(eqx.Module):
     norm: eqx.nn.GroupNorm
 
     def __init__(self, in_channels: int, out_channels: int, *, dtype, key: PRNGKeyArray):
-        self.conv = eqx.nn.Conv2d(in_channels, out_channels, 3, padding=1, dtype=dtype, key=key)
+        self.conv = conv2d(in_channels, out_channels, 3, padding=1, dtype=dtype, key=key)
         # Narrow blocks (fewer than 8 channels) normalise each channel on its own.
         self.norm = eqx.nn.GroupNorm(min(_GROUPS, out_channels), out_channels, dtype=dtype)
 
@@ -57,7 +59,7 @@ class UNet(eqx.Module):
         self.bottom = Block(2 * width, 4 * width, dtype=dtype, key=keys[2])
         self.up2 = Block(6 * width, 2 * width, dtype=dtype, key=keys[3])
         self.up1 = Block(3 * width, width, dtype=dtype, key=keys[4])
-        self.head = eqx.nn.Conv2d(width, out_channels, 3, padding=1, dtype=dtype, key=keys[5])
+        self.head = conv2d(width, out_channels, 3, padding=1, dtype=dtype, key=keys[5])
 
     def __call__(self, x: Float[Array, "C H W"]) -> Float[Array, "C2 H W"]:
         x1 = self.down1(x)

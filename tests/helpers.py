@@ -239,4 +239,4 @@ def simulate_reference(reference, q0, qd0, u, dt, samples, *, substeps=20, force
         return new, state
 
     _, (q, qd) = jax.lax.scan(step, (jnp.asarray(q0), jnp.asarray(qd0)), jnp.asarray(u)[:samples])
-    return jax.vmap(lambda a, b: keypoint_state(reference, a, b))(q, qd)
+    return jax.jit(jax.vmap(lambda a, b: keypoint_state(reference, a, b)))(q, qd)

@@ -24,7 +24,7 @@ def test_node2_implements_the_dynamics_interface():
     np.testing.assert_allclose(model.acceleration(x, xd), model.acceleration(x, xd, jnp.zeros(2)))
     with pytest.raises(ValueError, match="u must have shape"):
         model.acceleration(x, xd, jnp.zeros(3))
-    batched = jax.vmap(model.acceleration)(jnp.ones((5, 4)), jnp.zeros((5, 4)), jnp.zeros((5, 2)))
+    batched = jax.jit(jax.vmap(model.acceleration))(jnp.ones((5, 4)), jnp.zeros((5, 4)), jnp.zeros((5, 2)))
     assert batched.shape == (5, 4)
 
 

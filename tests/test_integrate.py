@@ -56,8 +56,8 @@ def test_projection_holds_constraints_and_none_drifts(acrobot):
 
     def drift(stabilisation, solver=cldyn.RK4()):
         out = cldyn.simulate(system, x0, xd0, ts, solver=solver, dt0=0.01, stabilisation=stabilisation)
-        position = jnp.max(jnp.abs(jax.vmap(system.constraint)(out.x) - phi0[None, :]))
-        velocity = jnp.max(jnp.abs(jax.vmap(system.constraint.velocity)(out.x, out.xd)))
+        position = jnp.max(jnp.abs(jax.jit(jax.vmap(system.constraint))(out.x) - phi0[None, :]))
+        velocity = jnp.max(jnp.abs(jax.jit(jax.vmap(system.constraint.velocity))(out.x, out.xd)))
         return float(position), float(velocity)
 
     projected = drift(cldyn.Projection())
@@ -75,7 +75,7 @@ def test_rattle_energy_error_does_not_grow():
     x0, xd0 = joints.to_keypoints(jnp.array([2.5]), jnp.zeros(1))
     ts = jnp.arange(0.0, 200.0, 0.01)
     out = cldyn.simulate(system, x0, xd0, ts, solver=cldyn.RATTLE(), dt0=0.01)
-    energy = jax.vmap(system.energy)(out.x, out.xd)
+    energy = jax.jit(jax.vmap(system.energy))(out.x, out.xd)
     bottom = system.potential_energy(joints.keypoints(jnp.zeros(1)))
     rel = np.asarray(jnp.abs(energy - energy[0]) / (energy[0] - bottom))
     half = rel.size // 2
@@ -122,7 +122,7 @@ def test_gradient_through_500_projected_steps_matches_finite_differences():
 def test_vmap_over_states_and_parameters_equals_loop():
     system, joints = cldyn.systems.pendulum(actuated=True)
     q = jnp.linspace(-2.0, 2.0, 5)[:, None]
-    x0, xd0 = jax.vmap(joints.to_keypoints)(q, jnp.zeros_like(q))
+    x0, xd0 = jax.jit(jax.vmap(joints.to_keypoints))(q, jnp.zeros_like(q))
     gravities = jnp.linspace(5.0, 12.0, 5)
     ts = jnp.linspace(0.0, 1.0, 11)
 
@@ -153,7 +153,7 @@ def test_controls_constant_time_and_feedback_agree():
         system, x0, xd0, jnp.linspace(0, 10, 11), **kwargs,
         control=lambda t, x, xd: -0.5 * jnp.atleast_1d(joints.to_joints(x, xd)[1]),
     )
-    energy = jax.vmap(system.energy)(damped.x, damped.xd)
+    energy = jax.jit(jax.vmap(system.energy))(damped.x, damped.xd)
     assert bool(jnp.all(jnp.diff(energy) < 0))
 
 
@@ -165,7 +165,7 @@ def test_project_state_closes_a_four_bar():
     assert float(jnp.max(jnp.abs(system.constraint(x) - lengths))) < 1e-12
     assert float(jnp.max(jnp.abs(system.constraint.velocity(x, xd)))) < 1e-12
     out = cldyn.simulate(system, x, xd, jnp.linspace(0, 5, 51), control=jnp.array([1.0]), reference=lengths)
-    assert float(jnp.max(jnp.abs(jax.vmap(system.constraint)(out.x) - lengths[None, :]))) < 1e-11
+    assert float(jnp.max(jnp.abs(jax.jit(jax.vmap(system.constraint))(out.x) - lengths[None, :]))) < 1e-11
 
 
 def test_inconsistent_initial_state_is_refused_unless_projected(acrobot):
@@ -239,7 +239,7 @@ def test_rk4_takes_fixed_steps_without_dt0():
     x0, xd0 = joints.to_keypoints(jnp.array([2.5, 0.3]), jnp.array([1.0, 0.2]))
     fine = cldyn.simulate(system, x0, xd0, jnp.arange(101.0) * 0.005, solver=cldyn.RK4(), stabilisation=None)
     coarse = cldyn.simulate(system, x0, xd0, jnp.arange(51.0) * 0.01, solver=cldyn.RK4(), stabilisation=None)
-    phi = jax.vmap(system.constraint)(fine.x) - system.constraint(x0)[None, :]
+    phi = jax.jit(jax.vmap(system.constraint))(fine.x) - system.constraint(x0)[None, :]
     assert float(jnp.max(jnp.abs(phi))) < 1e-6
     assert float(jnp.max(jnp.abs(fine.x[::2] - coarse.x))) < 1e-5
     with pytest.raises(ValueError, match="RK4 takes fixed steps and has no error estimate"):

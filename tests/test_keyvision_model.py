@@ -23,6 +23,7 @@ LENGTH = 0.6  # image-frame units from the image centre to the disc's centre
 RADIUS = 0.2  # of the disc, image-frame units
 
 
+@eqx.filter_jit
 def _cast(tree, dtype):
     return jax.tree.map(lambda a: a.astype(dtype) if eqx.is_inexact_array(a) else a, tree)
 
@@ -127,7 +128,7 @@ def test_keypoint_dynamics_is_the_cldyn_loss_on_encoded_keypoints():
     batch = keyvision.ImageSequences(frames, controls, DT)
     # encoded by hand: the estimator on every frame, keypoints (K, 2) flattened to [x1, y1, x2, y2]
     images = jnp.asarray(frames, jnp.float64) / 255
-    keypoints = jax.vmap(jax.vmap(model.estimator))(images)
+    keypoints = jax.jit(jax.vmap(jax.vmap(model.estimator)))(images)
     assert keypoints.shape == (3, 8, 2, 2)
     by_hand = cldyn.Sequences(keypoints.reshape(3, 8, 4), jnp.asarray(controls), DT)
     losses = (cldyn.Collocation(), cldyn.Collocation() + 0.5 * cldyn.Rollout(steps=2))
@@ -140,7 +141,7 @@ def test_keypoint_dynamics_is_the_cldyn_loss_on_encoded_keypoints():
     for value, expected in zip(*both(model, batch, by_hand), strict=True):
         assert value == pytest.approx(float(expected), rel=EXACT)
     # the reconstruction loss is the MSE of the rendered keypoints, by hand too
-    rendered = jax.vmap(jax.vmap(model.renderer))(keypoints)
+    rendered = jax.jit(jax.vmap(jax.vmap(model.renderer)))(keypoints)
     expected = jnp.mean((rendered - images) ** 2)
     assert keyvision.Reconstruction()(model, batch) == pytest.approx(float(expected), rel=EXACT)
 
@@ -178,7 +179,7 @@ def test_heatmap_regulariser_closed_form():
 
 RUNS, SAMPLES = 16, 16
 SCHEDULE = keyvision.Schedule(
-    autoencoder_steps=60, autoencoder_batch=32, dynamics_steps=1000, dynamics_batch=8, joint_steps=20,
+    autoencoder_steps=120, autoencoder_batch=32, dynamics_steps=1000, dynamics_batch=8, joint_steps=20,
     joint_batch=4, window=8, dynamics_weight=1e-4, heatmap_weight=0.0, learning_rate=3e-3,
     dynamics_learning_rate=1e-2, log_every=10, checkpoint_every=1000,
 )

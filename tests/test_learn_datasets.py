@@ -32,7 +32,7 @@ def test_keycld_datasets_follow_the_protocol(tmp_path, scene, dt, k, inputs):
     assert np.all(np.abs(data.u) <= 2.0)
     # keypoints about the first joint: the paper's constraints hold with constant values
     constraint = cldyn.keycld_constraint(scene)
-    values = jax.vmap(jax.vmap(constraint))(jnp.asarray(data.x))
+    values = jax.jit(jax.vmap(jax.vmap(constraint)))(jnp.asarray(data.x))
     np.testing.assert_allclose(values, np.broadcast_to(values[:, :1], values.shape), atol=CONSTRAINT_TOL)
     if scene == "cartpole":
         np.testing.assert_allclose(data.x[..., 1], 0.0, atol=CONSTRAINT_TOL)

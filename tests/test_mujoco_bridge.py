@@ -190,10 +190,10 @@ def test_joint_maps_match_mujoco(case):
     mjcf, keypoints, include = CASES[case]
     bridge = from_mjcf(mjcf, keypoints=keypoints, include=include)
     _, s = _mujoco_states(mjcf, keypoints, seed=1)
-    x, xd = jax.vmap(bridge.joints.to_keypoints)(s["qpos"], s["qvel"])
+    x, xd = jax.jit(jax.vmap(bridge.joints.to_keypoints))(s["qpos"], s["qvel"])
     assert float(jnp.max(jnp.abs(x - s["x_clean"]))) < MAP_ATOL
     assert float(jnp.max(jnp.abs(xd - s["xd"]))) < MAP_ATOL
-    qpos, qvel = jax.vmap(bridge.joints.to_joints)(s["x_clean"], s["xd"])
+    qpos, qvel = jax.jit(jax.vmap(bridge.joints.to_joints))(s["x_clean"], s["xd"])
     hinge = load_model(mjcf)[0].jnt_type == mujoco.mjtJoint.mjJNT_HINGE
     difference = np.array(qpos - s["qpos"])
     difference[:, hinge] = np.asarray(cldyn.wrap_angle(difference[:, hinge]))  # angles modulo 2 pi
@@ -227,7 +227,7 @@ def test_nominal_model_leaves_damping_out():
     damped = from_mjcf("acrobot", include=["damping"])
     assert nominal.system.dissipation is None and damped.system.dissipation is not None
     _, s = _mujoco_states("acrobot", None)
-    xdd = jax.vmap(nominal.system.acceleration)(s["x_clean"], s["xd"], s["u"])
+    xdd = jax.jit(jax.vmap(nominal.system.acceleration))(s["x_clean"], s["xd"], s["u"])
     assert float(jnp.max(jnp.abs(xdd - s["xdd"])) / jnp.max(jnp.abs(s["xdd"]))) > 1e-3
 
 

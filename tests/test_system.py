@@ -69,7 +69,7 @@ def _keypoint_states(name, key):
     system, _, reference = CASES[name]
     m = reference.n if hasattr(reference, "n") else 2
     q, qd, u = _random_joint_states(key, m, system.num_inputs)
-    x, xd = jax.vmap(lambda q, qd: keypoint_state(reference, q, qd))(q, qd)
+    x, xd = jax.jit(jax.vmap(lambda q, qd: keypoint_state(reference, q, qd)))(q, qd)
     return system, x, xd, u
 
 
@@ -77,6 +77,7 @@ def _keypoint_states(name, key):
 def test_constraints_hold_to_second_order(name):
     system, x, xd, u = _keypoint_states(name, jax.random.key(1))
 
+    @jax.jit
     @jax.vmap
     def residual(x, xd, u):
         xdd = system.acceleration(x, xd, u)
@@ -156,7 +157,7 @@ def test_constraint_forces_are_the_rod_forces_of_newton_euler(name):
 @pytest.mark.parametrize("name", sorted(CASES))
 def test_constraint_force_does_no_work(name):
     system, x, xd, u = _keypoint_states(name, jax.random.key(2))
-    force = jax.vmap(system.constraint_force)(x, xd, u)
+    force = jax.jit(jax.vmap(system.constraint_force))(x, xd, u)
     power = jnp.sum(force * xd, axis=1)
     scale = jnp.linalg.norm(force, axis=1) * jnp.linalg.norm(xd, axis=1)
     assert float(jnp.max(jnp.abs(power) / scale)) < POWER_RTOL
@@ -237,23 +238,21 @@ def test_redundant_constraint_gives_the_non_redundant_acceleration():
         cldyn.Stack([*base.constraint.constraints, cldyn.Distance(0, 1)]),
     )
     q, qd, u = _random_joint_states(jax.random.key(4), 2, 1, n=20)
-    x, xd = jax.vmap(joints.to_keypoints)(q, qd)
-    a_base = jax.vmap(base.acceleration)(x, xd, u)
-    a_twice = jax.vmap(twice.acceleration)(x, xd, u)
+    x, xd = jax.jit(jax.vmap(joints.to_keypoints))(q, qd)
+
+    @eqx.filter_jit
+    def evaluate(system):
+        functions = (system.acceleration, system.multipliers, system.constraint_force)
+        return [jax.vmap(f)(x, xd, u) for f in functions]
+
+    (a_base, lam_base, f_base), (a_twice, lam_twice, f_twice) = evaluate(base), evaluate(twice)
     assert bool(jnp.all(jnp.isfinite(a_twice)))
     assert np.allclose(a_twice, a_base, rtol=REDUNDANT_RTOL, atol=REDUNDANT_ATOL)
     # least-squares multipliers share the duplicated constraint's load equally
-    lam_base = jax.vmap(base.multipliers)(x, xd, u)
-    lam_twice = jax.vmap(twice.multipliers)(x, xd, u)
     assert bool(jnp.all(jnp.isfinite(lam_twice)))
     assert np.allclose(lam_twice[:, 1], lam_twice[:, 2], rtol=SHARE_RTOL, atol=SHARE_ATOL)
     assert np.allclose(lam_twice[:, 1] + lam_twice[:, 2], lam_base[:, 1], rtol=SHARE_RTOL, atol=SHARE_ATOL)
-    assert np.allclose(
-        jax.vmap(twice.constraint_force)(x, xd, u),
-        jax.vmap(base.constraint_force)(x, xd, u),
-        rtol=SHARE_RTOL,
-        atol=SHARE_ATOL,
-    )
+    assert np.allclose(f_twice, f_base, rtol=SHARE_RTOL, atol=SHARE_ATOL)
 
 
 def test_multipliers_are_the_rod_tension():
@@ -310,7 +309,7 @@ def test_four_bar_loop_stays_closed_to_second_order():
 def test_vmap_equals_loop():
     system, joints, _ = CASES["acrobot"]
     q, qd, u = _random_joint_states(jax.random.key(5), 2, 2, n=1000)
-    x, xd = jax.vmap(joints.to_keypoints)(q, qd)
+    x, xd = jax.jit(jax.vmap(joints.to_keypoints))(q, qd)
     batched = eqx.filter_jit(lambda x, xd, u: jax.vmap(system.acceleration)(x, xd, u))(x, xd, u)
     single = eqx.filter_jit(system.acceleration)
     looped = np.stack([np.asarray(single(x[i], xd[i], u[i])) for i in range(1000)])
@@ -328,11 +327,11 @@ def test_jit_traces_once_per_shape():
     system, joints, _ = CASES["acrobot"]
     for seed in range(4):
         q, qd, u = _random_joint_states(jax.random.key(seed), 2, 2, n=8)
-        x, xd = jax.vmap(joints.to_keypoints)(q, qd)
+        x, xd = jax.jit(jax.vmap(joints.to_keypoints))(q, qd)
         accelerations(system, x, xd, u)
     assert traces == [(8, 4)]
     q, qd, u = _random_joint_states(jax.random.key(9), 2, 2, n=16)
-    x, xd = jax.vmap(joints.to_keypoints)(q, qd)
+    x, xd = jax.jit(jax.vmap(joints.to_keypoints))(q, qd)
     accelerations(system, x, xd, u)
     accelerations(system, x + 1e-3, xd, u)
     assert traces == [(8, 4), (16, 4)]
@@ -442,9 +441,11 @@ def test_a_float32_model_stays_in_float32():
     single = lambda a: a.astype(jnp.float32) if eqx.is_inexact_array(a) else a
     x, xd = jax.tree.map(single, joints.to_keypoints(jnp.array([0.3, 0.4]), jnp.array([0.1, -0.2])))
     u = jnp.ones(2, jnp.float32)
-    for model in models:
+
+    @eqx.filter_jit
+    def outputs(model):
         model = jax.tree.map(single, model)
-        outputs = (
+        return (
             model.acceleration(x, xd, u),
             model.multipliers(x, xd, u),
             model.constraint_force(x, xd, u),
@@ -453,4 +454,7 @@ def test_a_float32_model_stays_in_float32():
             model.power(x, xd, u),
             model.mass.inverse(),
         )
-        assert [o.dtype for o in outputs] == [jnp.float32] * len(outputs)
+
+    for model in models:
+        dtypes = [o.dtype for o in outputs(model)]
+        assert dtypes == [jnp.float32] * len(dtypes)
