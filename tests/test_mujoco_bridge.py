@@ -285,11 +285,19 @@ def test_more_errors():
             f'<mujoco><worldbody>{hinge}</worldbody><equality><joint name="lock" joint1="h"/>'
             "</equality></mujoco>"
         )
-    with pytest.raises(ValueError, match="actuator 'servo' is not a motor"):
-        from_mjcf(
-            f'<mujoco><worldbody>{hinge}</worldbody><actuator><position name="servo" joint="h" kp="1"/>'
-            "</actuator></mujoco>"
-        )
+    for element, message in (
+        ('<position name="servo" joint="h" kp="1"/>', r"actuator 'servo' is a servo \(<position>"),
+        (
+            '<intvelocity name="servo" joint="h" kp="1" actrange="-1 1"/>',
+            "actuator 'servo' is an <intvelocity>",
+        ),
+        (
+            '<general name="servo" joint="h" dyntype="filter" dynprm="0.1"/>',
+            "actuator 'servo' is an actuator with activation dynamics",
+        ),
+    ):
+        with pytest.raises(ValueError, match=message):
+            from_mjcf(f"<mujoco><worldbody>{hinge}</worldbody><actuator>{element}</actuator></mujoco>")
     with pytest.raises(ValueError, match="unknown effect 'friction'; allowed: damping, stiffness, armature"):
         from_mjcf("keycld/pendulum", include=["friction"])
     with pytest.raises(ValueError, match="frictionloss is dry friction"):

@@ -11,7 +11,7 @@ from cldyn import Sequences
 mujoco = pytest.importorskip("mujoco")
 
 from cldyn._cli import main  # noqa: E402
-from cldyn.mujoco import record  # noqa: E402
+from cldyn.mujoco import record, scene_xml  # noqa: E402
 
 pytestmark = pytest.mark.mujoco
 
@@ -255,3 +255,18 @@ def test_command_line(tmp_path, capsys):
     assert (report_dir / "keypoint_error.png").stat().st_size > 0
     assert main(["record", "--mjcf", "no_such_file.xml", "--out", str(tmp_path / "other.npz")]) == 2
     assert "MJCF file not found: no_such_file.xml" in capsys.readouterr().err
+
+
+def test_applied_controls_include_force_clamping():
+    # a motor whose force MuJoCo clamps to forcerange: the recorded control is the force applied over
+    # the gain (gear * u is then MuJoCo's joint force), the commanded one is kept beside it
+    xml = scene_xml("keycld/pendulum").replace(
+        'ctrllimited="false"',
+        'ctrllimited="true" ctrlrange="-1.5 1.5" forcelimited="true" forcerange="-0.3 0.3"',
+    )
+    commands = np.array([[2.0], [-1.0], [0.2]])
+    data = record(xml, duration=0.1, dt=0.01, control=commands, seed=0)
+    np.testing.assert_allclose(data.u[:, 0, 0], [0.3, -0.3, 0.2])
+    np.testing.assert_allclose(data.extras["u_commanded"][:, 0, 0], commands[:, 0])
+    gear = 2.0  # the scene's motor
+    np.testing.assert_allclose(data.extras["qfrc_actuator"][..., 0], gear * data.u[..., 0], rtol=1e-12)

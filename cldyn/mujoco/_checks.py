@@ -87,16 +87,37 @@ def _check_actuators(model: mujoco.MjModel) -> None:
                 f"actuator {actuator_name(model, a)!r} uses a {trn.name} transmission; from_mjcf supports "
                 "motors on hinge and slide joints"
             )
-        plain = (
-            model.actuator_dyntype[a] == mujoco.mjtDyn.mjDYN_NONE
-            and model.actuator_gaintype[a] == mujoco.mjtGain.mjGAIN_FIXED
-            and model.actuator_biastype[a] == mujoco.mjtBias.mjBIAS_NONE
-        )
-        if not plain:
+        dyn = mujoco.mjtDyn(int(model.actuator_dyntype[a]))
+        gain = mujoco.mjtGain(int(model.actuator_gaintype[a]))
+        bias = mujoco.mjtBias(int(model.actuator_biastype[a]))
+        kind = _actuator_kind(dyn, gain, bias)
+        if kind is not None:
             raise ValueError(
-                f"actuator {actuator_name(model, a)!r} is not a motor (its force depends on state or "
-                "activation); from_mjcf supports <motor> actuators"
+                f"actuator {actuator_name(model, a)!r} is {kind} (dynamics "
+                f"{dyn.name.removeprefix('mjDYN_')}, gain {gain.name.removeprefix('mjGAIN_')}, bias "
+                f"{bias.name.removeprefix('mjBIAS_')}): its "
+                "force depends on the state or an activation, not on the control alone; from_mjcf supports "
+                "<motor> actuators (and <general> ones with fixed gain, no bias and no dynamics)"
             )
+
+
+def _actuator_kind(dyn, gain, bias) -> str | None:
+    """What MJCF element an unsupported actuator most likely is, or `None` for a motor."""
+    if (
+        dyn == mujoco.mjtDyn.mjDYN_NONE
+        and gain == mujoco.mjtGain.mjGAIN_FIXED
+        and bias == mujoco.mjtBias.mjBIAS_NONE
+    ):
+        return None
+    if dyn == mujoco.mjtDyn.mjDYN_INTEGRATOR:
+        return "an <intvelocity> actuator (or a <general> one with an integrator)"
+    if dyn != mujoco.mjtDyn.mjDYN_NONE:
+        return "an actuator with activation dynamics (a <cylinder>, <muscle> or filtered <general>)"
+    if gain == mujoco.mjtGain.mjGAIN_MUSCLE or bias == mujoco.mjtBias.mjBIAS_MUSCLE:
+        return "a <muscle>"
+    if bias == mujoco.mjtBias.mjBIAS_AFFINE:
+        return "a servo (<position>, <velocity> or <damper>)"
+    return "not a motor"
 
 
 def check_include(include) -> tuple[str, ...]:

@@ -210,13 +210,29 @@ class _Kinematics:
         return tuple(np.concatenate([project @ v for v in values]) for values in (x, xd, xdd))
 
 
-def _applied_ctrl(model, ctrl: np.ndarray) -> np.ndarray:
-    if model.opt.disableflags & mujoco.mjtDisableBit.mjDSBL_CLAMPCTRL:
-        return ctrl
-    limited = model.actuator_ctrllimited.astype(bool)
-    clamped = ctrl.copy()
-    clamped[limited] = np.clip(ctrl[limited], *model.actuator_ctrlrange[limited].T)
-    return clamped
+def _motors(model) -> np.ndarray:
+    """Which actuators are plain motors (force = gain * ctrl), with a non-zero gain."""
+    return (
+        (model.actuator_dyntype == mujoco.mjtDyn.mjDYN_NONE)
+        & (model.actuator_gaintype == mujoco.mjtGain.mjGAIN_FIXED)
+        & (model.actuator_biastype == mujoco.mjtBias.mjBIAS_NONE)
+        & (model.actuator_gainprm[:, 0] != 0)
+    )
+
+
+def _applied_ctrl(model, data, ctrl: np.ndarray) -> np.ndarray:
+    """The control as applied: clamped to `ctrlrange` where `ctrllimited`, and for motors the force
+    MuJoCo applied (after its clamping to `forcerange` where `forcelimited`) over the gain, so that
+    `gear * gain * u` is the joint force."""
+    applied = ctrl.copy()
+    if not model.opt.disableflags & mujoco.mjtDisableBit.mjDSBL_CLAMPCTRL:
+        limited = model.actuator_ctrllimited.astype(bool)
+        applied[limited] = np.clip(ctrl[limited], *model.actuator_ctrlrange[limited].T)
+    # where a motor's force was clamped (exact products elsewhere keep the control bit for bit)
+    gain = model.actuator_gainprm[:, 0]
+    forced = _motors(model) & (data.actuator_force != gain * applied)
+    applied[forced] = data.actuator_force[forced] / gain[forced]
+    return applied
 
 
 def simulate_mujoco(
@@ -233,8 +249,8 @@ def simulate_mujoco(
 ) -> dict[str, np.ndarray]:
     """Step MuJoCo from each initial state and sample every `substeps` steps.
 
-    `u` holds the controls MuJoCo applied (after clamping to `ctrlrange`), `u_commanded` those
-    asked for.
+    `u` holds the controls MuJoCo applied (after clamping to `ctrlrange` and, for motors, of their
+    force to `forcerange`), `u_commanded` those asked for.
     """
     runs = qpos0.shape[0]
     kinematics = _Kinematics(model, keypoints, plane)
@@ -275,7 +291,7 @@ def _run(model, data, kinematics, out, r, qpos0, qvel0, *, controls, samples, su
         out["qpos"][r, s] = data.qpos
         out["qvel"][r, s] = data.qvel
         out["qacc"][r, s] = data.qacc
-        out["u"][r, s] = _applied_ctrl(model, ctrl)
+        out["u"][r, s] = _applied_ctrl(model, data, ctrl)
         out["u_commanded"][r, s] = ctrl
         for name in _FORCES:
             out[name][r, s] = getattr(data, name)
@@ -363,8 +379,10 @@ def record(
     - `x`: keypoint positions as observed, `(R, T, k)` with `k = d * n_keypoints`, laid out
       `[x1, y1, x2, y2, ...]` (planar, `d = 2`) or `[x1, y1, z1, ...]` (world, `d = 3`, for
       non-planar models), with the noise; `xd`, `xdd`: keypoint velocities and accelerations (exact).
-    - `u`: the controls MuJoCo applied from each sample to the next (after its clamping to
-      `ctrlrange`), `(R, T, nu)`; `dt` the sampling interval, `ts` the sample times.
+    - `u`: the controls MuJoCo applied from each sample to the next, `(R, T, nu)`: clamped to
+      `ctrlrange` where `ctrllimited`, and for motors the force MuJoCo applied (clamped to `forcerange`
+      where `forcelimited`) over the gain, so that `gear * gain * u` is the joint force; `dt` the
+      sampling interval, `ts` the sample times.
     - `extras`: `qpos` `(R, T, nq)`, `qvel`, `qacc` `(R, T, nv)`; `x_clean` (the positions without
       noise); MuJoCo's joint-space forces `qfrc_passive`, `qfrc_actuator`, `qfrc_constraint`,
       `qfrc_bias` `(R, T, nv)`, with `M(q) qacc + qfrc_bias = qfrc_actuator + qfrc_passive +
