@@ -14,6 +14,11 @@ from ._batching import (
     Windows as Windows,
 )
 from ._checkpoint import CheckpointError as CheckpointError
+from ._consistency import (
+    ConstraintCheck as ConstraintCheck,
+    ConstraintViolation as ConstraintViolation,
+    check_constraints as check_constraints,
+)
 from ._constraint import (
     AbstractConstraint as AbstractConstraint,
     Anchor as Anchor,
@@ -73,6 +78,7 @@ from ._identify import (
     EFFECTS as EFFECTS,
     AbstractEffect as AbstractEffect,
     ActuatorGainEffect as ActuatorGainEffect,
+    Adequacy as Adequacy,
     Candidate as Candidate,
     Criteria as Criteria,
     Detection as Detection,
@@ -86,7 +92,9 @@ from ._identify import (
     KeypointDragEffect as KeypointDragEffect,
     PointMassEffect as PointMassEffect,
     Smoothing as Smoothing,
+    SmoothingChoice as SmoothingChoice,
     augment as augment,
+    estimate_noise as estimate_noise,
     identify as identify,
 )
 from ._input import (

@@ -368,7 +368,36 @@ def test_identify(tmp_path, capsys):
     argv += ["--effects", "joint_damping", "joint_spring", "--bootstrap", "10", "--max-rounds", "1"]
     status, out, _ = _run(capsys, argv)
     assert status == 0
-    assert out.startswith("identify: 6 runs (4 fit, 2 held out), 191 samples each\n  before: accel_rmse ")
+    assert out.startswith("identify: 6 runs (4 fit, 2 held out) of 201 samples every 10 ms\n  noise ")
+    assert "\n  before: accel_rmse " in out and "identify took" in out
     report = json.loads((tmp_path / "report" / "report.json").read_text())
     assert report["settings"]["effects"] == ["joint_damping", "joint_spring"]
     assert (tmp_path / "report" / "report.md").is_file()
+
+
+@pytest.mark.mujoco
+def test_fit_refuses_keypoints_off_the_model_constraints(tmp_path, capsys):
+    # a pendulum pivoting 1.2 m above the origin: KeyCLD's pendulum constraint (the tip at a fixed
+    # distance from the origin) does not hold unless --origin moves the pivot there
+    pytest.importorskip("mujoco")
+    xml = (
+        '<mujoco><option timestep="0.005"/><worldbody><body name="arm" pos="0 0 1.2">'
+        '<joint name="pivot" type="hinge" axis="0 1 0"/><geom type="capsule" fromto="0 0 0 0 0 -0.75" '
+        'size="0.02" mass="1"/></body></worldbody><actuator><motor joint="pivot" gear="2"/></actuator>'
+        "</mujoco>"
+    )
+    (tmp_path / "pendulum.xml").write_text(xml)
+    path = tmp_path / "runs.npz"
+    argv = ["record", "--mjcf", str(tmp_path / "pendulum.xml"), "--out", str(path), "--runs", "6"]
+    assert _run(capsys, argv + ["--duration", "0.5", "--dt", "0.02"])[0] == 0
+    fit = ["fit", "--data", str(path), "--constraint", "pendulum", "--out", str(tmp_path / "f")]
+    fit += ["--no-progress", "--validation-runs", "2", "--batch-size", "2", "--steps", "1"]
+    status, _, err = _run(capsys, fit)
+    assert status == 2 and "cldyn fit: error: the data do not fit --constraint pendulum" in err
+    assert "Anchor(keypoint=0" in err and "pass --origin X Y" in err
+    assert not (tmp_path / "f").exists()
+    # about the pivot, the tip keeps its distance (to rounding: the data are noise-free)
+    data = cldyn.Sequences.load(path)
+    radius = np.linalg.norm(np.asarray(data.x) - np.array([0.0, 1.2]), axis=-1)
+    assert np.ptp(radius) < PENDULUM_TOL
+    assert cldyn.check_constraints(cldyn.Anchor(0), data.relative_to((0.0, 1.2)).x, noise=0.0).ok

@@ -7,6 +7,7 @@ joint-space force written independently of cldyn's terms. The MuJoCo acceptance 
 test_identify_mujoco.py.
 """
 
+import dataclasses
 import functools
 import importlib.util
 import itertools
@@ -20,14 +21,19 @@ from helpers import reference_systems, simulate_reference
 
 import cldyn
 from cldyn._identify.regression import Normal, fit
+from cldyn._identify.smoothing import prepare
 
 DAMPING_RTOL = 0.05  # linear damping beside the quadratic one, on exact data
 QUADRATIC_RTOL = 0.15  # the acceptance figure for the new effect
 MIN_ROLLOUT_DROP = 5.0
+DAMPING_RATES_RTOL = 0.15  # the acceptance figure, at either rate
+RATE_AGREEMENT = 0.05  # the same data at 1 kHz and thinned to 100 Hz
 WEAK_RESIDUAL_RTOL = 1e-4  # weak residual of the exact model / inertial forces
 SMOOTHING_ATOL = (1e-12, 1e-9, 1e-6)  # a degree-4 polynomial: position, velocity, acceleration
 SINE_RTOL = 1e-4
 BY_PARTS_RTOL = 1e-4  # the sums of the quadrature against the integrals (2e-5 here)
+NOISE_RTOL = 0.05  # noise estimated from 6 runs of 4 s
+DECIMATION_RTOL = 2e-3  # weak integrals from kept samples against every sample
 
 
 # -- pieces -------------------------------------------------------------------------------------
@@ -36,16 +42,17 @@ BY_PARTS_RTOL = 1e-4  # the sums of the quadrature against the integrals (2e-5 h
 def test_smoothing_differentiates_polynomials_exactly_and_sines_accurately():
     dt = 0.01
     t = np.arange(200) * dt
-    smoothing = cldyn.Smoothing(window=9, order=4)
-    m = smoothing.margin
+    choice = cldyn.Smoothing(window=0.09, order=4, decimate=False).choose(np.zeros((1, t.size, 1)), dt)
+    assert choice.window == 9 and choice.step == 1
+    m = choice.margin
     poly = 1.0 + 2.0 * t - 3.0 * t**2 + 0.5 * t**4
-    x, xd, xdd = smoothing(poly[None, :, None], dt)
+    x, xd, xdd = choice.smooth(poly[None, :, None])
     interior = t[m:-m]
     assert np.allclose(x[0, :, 0], poly[m:-m], atol=SMOOTHING_ATOL[0])
     assert np.allclose(xd[0, :, 0], 2 - 6 * interior + 2 * interior**3, atol=SMOOTHING_ATOL[1])
     assert np.allclose(xdd[0, :, 0], -6 + 6 * interior**2, atol=SMOOTHING_ATOL[2])
     omega = 6.0
-    x, xd, _ = smoothing(np.sin(omega * t)[None, :, None], dt)
+    x, xd, _ = choice.smooth(np.sin(omega * t)[None, :, None])
     assert np.max(np.abs(xd[0, :, 0] - omega * np.cos(omega * interior))) < SINE_RTOL * omega
 
 
@@ -53,11 +60,78 @@ def test_test_functions_integrate_derivatives_by_parts():
     # int psi f' dt = -int psi' f dt for a smooth f: the identity the weak form rests on
     dt = 0.01
     t = np.arange(300) * dt
-    tests = cldyn.Smoothing().test_functions(t.size, dt)
+    choice = cldyn.Smoothing(window=0.11, test_width=0.31, test_stride=0.05).choose(np.zeros((1, 300, 1)), dt)
+    assert (choice.test_width, choice.test_stride, choice.step) == (31, 5, 1)
+    tests = choice.test_functions(t.size)
     f, fd = np.sin(3 * t) + t**2, 3 * np.cos(3 * t) + 2 * t
     assert np.allclose(tests.psi @ np.ones_like(t), 1.0)
     scale = np.max(np.abs(tests.psi @ fd))
     assert np.max(np.abs(tests.psi @ fd + tests.dpsi @ f)) < BY_PARTS_RTOL * scale
+
+
+def _noisy_motion(dt, sigma, *, seconds=4.0, runs=6, seed=0):
+    """Smooth runs `(runs, T, 2)`: sums of sines of angular frequencies 2 to 5 rad/s, with white noise."""
+    rng = np.random.default_rng(seed)
+    t = np.arange(int(round(seconds / dt)) + 1) * dt
+    frequencies = rng.uniform(2.0, 5.0, size=(runs, 1, 2, 3))
+    phases = rng.uniform(0, 2 * np.pi, size=(runs, 1, 2, 3))
+    x = 0.5 * np.sin(frequencies * t[None, :, None, None] + phases).sum(axis=-1)
+    return x + sigma * np.random.default_rng(seed + 1).standard_normal(x.shape)
+
+
+@pytest.mark.parametrize("dt", [0.0005, 0.01])
+def test_noise_is_estimated_from_the_data(dt):
+    for sigma in (0.001, 0.003):
+        estimate = cldyn.estimate_noise(_noisy_motion(dt, sigma))
+        assert abs(estimate - sigma) < NOISE_RTOL * sigma, (dt, sigma, estimate)
+    assert cldyn.estimate_noise(_noisy_motion(dt, 0.0)) < 1e-2 * 0.001
+
+
+def test_smoothing_is_chosen_in_physical_time():
+    # the same motion and noise sampled at 2 kHz and at 100 Hz: test functions of the same length in
+    # seconds (twice the time scale, 1 / RMS frequency of the velocity), windows of similar length
+    # (the rate only changes how many samples average the noise), fast data decimated to a few
+    # samples per window
+    fast = cldyn.Smoothing().choose(_noisy_motion(0.0005, 0.001), 0.0005)
+    slow = cldyn.Smoothing().choose(_noisy_motion(0.01, 0.001), 0.01)
+    for choice in (fast, slow):
+        assert abs(choice.noise - 0.001) < NOISE_RTOL * 0.001
+        # the motion's time scale, sqrt(<v^2> / <a^2>) of sines of 2 to 5 rad/s: between 1/5 and 1/2 s
+        assert 0.2 < choice.timescale < 0.5
+    assert abs(fast.timescale - slow.timescale) < 0.05 * slow.timescale
+    fast_test, slow_test = (c.test_width * c.interval for c in (fast, slow))
+    assert abs(fast_test - slow_test) < 0.1 * slow_test
+    assert 0.5 < fast.window * fast.dt / (slow.window * slow.dt) < 2.0
+    assert fast.step > 10 and fast.interval <= fast.window * fast.dt / 10
+    # given settings are kept, in seconds
+    given = cldyn.Smoothing(window=0.05, test_width=0.4).choose(_noisy_motion(0.0005, 0.001), 0.0005)
+    assert given.window == 101 and abs(given.test_width * given.interval - 0.4) <= 1.01 * given.interval
+    assert given.chosen["window"] == given.chosen["test_width"] == "given"
+
+
+def test_decimation_keeps_the_weak_integrals():
+    # int psi' x dt over the kept samples against the same test functions integrated over every
+    # sample of the same smoothed positions: only the quadrature differs
+    dt = 0.0005
+    x = _noisy_motion(dt, 0.001, runs=2)
+    thinned = cldyn.Smoothing().choose(x, dt)
+    assert thinned.step > 10
+    kept = prepare(x, np.zeros(x.shape[:2] + (0,)), thinned, ())
+    tests = thinned.test_functions(kept.x.shape[1])
+    coarse = np.einsum("nt,rtk->rnk", tests.dpsi, kept.x)
+    every = dataclasses.replace(thinned, step=1)
+    smooth = every.smooth(x)[0]
+    # the test functions in time: (1 - s^2)^4 about each centre, half-width (half + 1) kept intervals
+    t_kept = np.arange(kept.x.shape[1]) * thinned.interval
+    t_all = np.arange(smooth.shape[1]) * dt
+    half = (thinned.test_width // 2 + 1) * thinned.interval
+    centres = t_kept[thinned.test_width // 2 :: thinned.test_stride][: tests.count]
+    s_ = (t_all[None, :] - centres[:, None]) / half
+    inside = np.abs(s_) < 1
+    psi = np.where(inside, (1 - s_**2) ** 4, 0.0)
+    dpsi = np.where(inside, -8 * s_ * (1 - s_**2) ** 3 / half, 0.0)
+    fine = np.einsum("nt,rtk->rnk", dpsi / (psi.sum(axis=1, keepdims=True) * dt) * dt, smooth)
+    assert np.max(np.abs(coarse - fine)) < DECIMATION_RTOL * np.max(np.abs(fine))
 
 
 def test_constrained_least_squares_matches_brute_force():
@@ -121,12 +195,11 @@ def _effect_free_pendulum():
 
 def test_weak_residual_of_the_true_model_vanishes():
     from cldyn._identify.residual import Residual, evaluate
-    from cldyn._identify.smoothing import prepare
 
     system, joints, data, coordinates = _effect_free_pendulum()
-    smoothing = cldyn.Smoothing()
-    prepared = prepare(data.x, data.u, data.dt, smoothing, tuple(coordinates.values()))
-    tests = smoothing.test_functions(prepared.x.shape[1], data.dt)
+    choice = cldyn.Smoothing().choose(data.x, data.dt)
+    prepared = prepare(data.x, data.u, choice, tuple(coordinates.values()))
+    tests = choice.test_functions(prepared.x.shape[1])
     weak = tests.weak(*evaluate(Residual(system, joints), *prepared.arrays()))
     residual, inertial = weak[..., 0], weak[..., 1]
     assert np.sqrt(np.mean(residual**2)) < WEAK_RESIDUAL_RTOL * np.sqrt(np.mean(inertial**2))
@@ -150,8 +223,10 @@ def test_identify_finds_linear_and_quadratic_joint_damping(tmp_path):
         d.to_dict() for d in result.detected
     ]
     quadratic = found[("joint_quadratic_damping", "elbow")]
-    print(f"quadratic damping at the elbow: {quadratic.value:.6g} (truth {c}); "
-          f"linear at the shoulder: {found[('joint_damping', 'shoulder')].value:.6g} (truth {b})")
+    print(
+        f"quadratic damping at the elbow: {quadratic.value:.6g} (truth {c}); "
+        f"linear at the shoulder: {found[('joint_damping', 'shoulder')].value:.6g} (truth {b})"
+    )
     assert abs(quadratic.value - c) <= QUADRATIC_RTOL * c
     linear = found[("joint_damping", "shoulder")]
     assert abs(linear.value - b) <= DAMPING_RTOL * b
@@ -172,6 +247,64 @@ def test_identify_finds_linear_and_quadratic_joint_damping(tmp_path):
     assert (out / "report.md").read_text().startswith("# Missing physics")
     assert (out / "error_over_time.png").stat().st_size > 10_000
     assert (out / "residual_vs_feature.png").stat().st_size > 10_000
+
+
+@pytest.mark.slow
+def test_identify_gives_the_same_damping_at_two_rates():
+    # one recording of a damped pendulum at 1 kHz with 1 mm of noise, identified as it is and thinned
+    # to 100 Hz: the settings follow the data in seconds, so both find the damping, and the same value
+    b = 0.1
+    system, joints, fast, coordinates = _reference_data(
+        "pendulum", lambda q, qd: -b * qd, runs=16, seconds=3.0, dt=0.001, seed=2
+    )
+    x = np.asarray(fast.x) + 0.001 * np.random.default_rng(3).standard_normal(fast.x.shape)
+    rates = (cldyn.Sequences(x, fast.u, 0.001), cldyn.Sequences(x[:, ::10], fast.u[:, ::10], 0.01))
+    values, widths = [], []
+    for data in rates:
+        result = cldyn.identify(system, data, joint_coordinates=coordinates, joints=joints, bootstrap=30)
+        assert [(d.name, d.where) for d in result.detected] == [("joint_damping", "hinge")], result.summary()
+        assert result.before.rollout_rmse_1s > MIN_ROLLOUT_DROP * result.after.rollout_rmse_1s
+        values.append(result.detected[0].value)
+        widths.append(result.settings["smoothing"]["test_width_seconds"])
+        print(f"dt {data.dt}: damping {values[-1]:.5g} (truth {b}); {result.settings['seconds']:.1f} s")
+    assert all(abs(v - b) <= DAMPING_RATES_RTOL * b for v in values)
+    assert abs(values[0] - values[1]) <= RATE_AGREEMENT * values[1]
+    assert abs(widths[0] - widths[1]) <= 0.1 * widths[1]
+
+
+def test_identify_says_when_the_data_cannot_support_a_conclusion():
+    # four short runs without control: too few equations for a conclusion, and the actuator's gain
+    # cannot be examined at all; "nothing could be detected" is not "nothing detected"
+    system, joints, data, coordinates = _reference_data("pendulum", runs=4, seconds=0.8, control=0.0)
+    result = cldyn.identify(
+        system, data, joint_coordinates=coordinates, joints=joints, bootstrap=10, max_rounds=1
+    )
+    assert result.outcome == "nothing could be detected" and not result.detected
+    assert any(p.startswith("too short") for p in result.adequacy.problems), result.adequacy
+    assert ("actuator_gain[u0]", "actuator 'u0' is never driven (its control is zero throughout)") in (
+        result.adequacy.unexamined
+    )
+    summary = result.summary()
+    assert summary.startswith("nothing could be detected: too short") and "not examined" in summary
+    assert result.to_dict()["outcome"] == "nothing could be detected"
+
+
+def test_identify_refuses_data_that_break_the_model_kinematics():
+    system, joints, data, coordinates = _effect_free_pendulum()
+    # keypoints of a pendulum 1.3 times as long as the model's (0.7 m): the anchor's distance is off by
+    # 0.3 * 0.7 m at every sample
+    longer = cldyn.Sequences(1.3 * np.asarray(data.x), data.u, data.dt)
+    with pytest.raises(cldyn.ConstraintViolation, match=r"Anchor\(keypoint=0.* by 0\.21 .*holds it at 0\.7,"):
+        cldyn.identify(system, longer, joint_coordinates=coordinates, joints=joints)
+    # a pivot 0.3 m away from the model's, without a joint map: |x| varies along the runs
+    shifted = cldyn.Sequences(np.asarray(data.x) + np.array([0.3, 0.0]), data.u, data.dt)
+    radius = np.linalg.norm(np.asarray(shifted.x), axis=-1)
+    check = cldyn.check_constraints(system.constraint, shifted.x, noise=0.0, throw=False)
+    assert not check.ok and np.isclose(check.deviation[0], np.std(radius), rtol=1e-9)
+    with pytest.raises(cldyn.ConstraintViolation, match=f"by {np.std(radius):.3g} "):
+        cldyn.identify(system, shifted, joint_coordinates=coordinates)
+    # the exact data keep the constraint to rounding
+    assert cldyn.check_constraints(system.constraint, data.x, noise=0.0, level=np.array([0.7])).ok
 
 
 def test_identify_rejects_bad_input():

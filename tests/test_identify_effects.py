@@ -107,6 +107,20 @@ def test_every_effect_adds_the_force_its_features_describe(effect):
         read = effect.refitted(augmented, candidate, context)
         if read is not None:
             assert np.isclose(read["value"], candidate.parameters(theta)["value"]), candidate.label
+        # where the term follows the effect, the model changes as the features say: the wrapped angle
+        # equals the unwrapped one within half a turn of a spring's rest, so no sample is flagged
+        outside = effect.unrepresentable(candidate, candidate.parameters(theta), np.asarray(q)[None])
+        assert outside is None or not outside.any(), candidate.label
+
+
+def test_a_hinge_spring_wound_past_half_a_turn_is_flagged():
+    # keypoints give an angle modulo a turn: a spring about rest 0.3 wound to 0.3 + 4 rad (MuJoCo counts
+    # turns) pulls the other way in the keypoint model, whose wrapped angle is 0.3 + 4 - 2 pi
+    system, reference, context = _context("acrobot")
+    candidate = cldyn.JointSpringEffect().candidates(context)[0]
+    q = np.array([[[0.3 + 4.0, 0.0], [0.3 - 3.0, 0.0], [0.3 + 3.0, 0.0], [0.3 - 4.0, 1.0]]])
+    outside = candidate.effect.unrepresentable(candidate, {"springref": 0.3}, q)
+    np.testing.assert_array_equal(outside, [[True, False, False, True]])
 
 
 def _detection(candidate, theta):

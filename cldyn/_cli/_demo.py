@@ -60,7 +60,7 @@ def run(args: argparse.Namespace) -> int:
     data.save(out / "measured.npz", overwrite=args.overwrite)
     print(f"[2/3] identifying what the nominal model of {SCENE!r} is missing")
     result = identify_recording(data, SCENE, seed=args.seed, progress_meter=cldyn.TqdmProgressMeter())
-    print(narrative(result, data.num_samples))
+    print(narrative(result))
     print("[3/3] report")
     report = result.save(out / "identify")
     print(result.summary())

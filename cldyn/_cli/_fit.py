@@ -148,6 +148,30 @@ def _data(args: argparse.Namespace):
     return data, description, scene
 
 
+def _check_kinematics(args: argparse.Namespace, model, data, scene) -> None:
+    """Refuse keypoints that break the model's constraints by more than their noise (a pivot away from
+    the origin the constraints assume, say): training would fit a mechanism that is not there."""
+    import cldyn
+
+    constraint = getattr(model, "constraint", None)
+    if constraint is None:
+        return
+    try:
+        cldyn.check_constraints(
+            constraint,
+            data.x,
+            noise=cldyn.estimate_noise(data.x),
+            keypoint_names=data.info.get("keypoint_names"),
+            what=f"the {scene} model",
+        )
+    except cldyn.ConstraintViolation as error:
+        where = "--origin X Y (the pivot's position)" if args.origin is None else "another --origin"
+        raise CommandError(
+            f"the data do not fit --constraint {scene}: {error}. If the mechanism's fixed point is not at "
+            f"the origin, pass {where}"
+        ) from None
+
+
 def _meter(args: argparse.Namespace):
     import cldyn
 
@@ -280,6 +304,7 @@ def run(args: argparse.Namespace) -> int:
         if model_spec["constraint"] is None:
             raise
         raise CommandError(f"--constraint {model_spec['constraint']}: {error}") from None
+    _check_kinematics(args, model, data, model_spec["constraint"])
     schedule = optax.cosine_decay_schedule(args.lr, args.steps, alpha=0.01)
     optimizer = optax.chain(optax.clip(args.clip), optax.adam(schedule))
     spec = {

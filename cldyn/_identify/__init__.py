@@ -9,12 +9,14 @@ features, with a bootstrap over whole runs for the uncertainty. Detected effects
 as cldyn terms, the model is refitted, and the loop repeats until nothing passes.
 
 Layout: `base` (the effect interface), one module per effect, `library` (the default effects),
-`smoothing`, `residual` (the weak form), `regression`, `refit`, `errors` (before/after), `identify`
-(the loop), `result` and `report`.
+`smoothing` and `choice` (its settings, chosen from the data), `residual` (the weak form), `adequacy`
+(what the data can support), `limits` (samples at joint limits), `regression`, `refit`, `errors`
+(before/after), `identify` (the loop), `result` and `report`.
 """
 
 from .actuator_gain import ActuatorGainEffect as ActuatorGainEffect
 from .base import AbstractEffect as AbstractEffect, Candidate as Candidate, Context as Context
+from .choice import estimate_noise as estimate_noise
 from .identify import identify as identify
 from .joint_armature import JointArmatureEffect as JointArmatureEffect
 from .joint_coulomb import JointCoulombEffect as JointCoulombEffect
@@ -26,5 +28,10 @@ from .library import EFFECTS as EFFECTS
 from .point_mass import PointMassEffect as PointMassEffect
 from .refit import augment as augment
 from .regression import Criteria as Criteria
-from .result import Detection as Detection, Errors as Errors, Identification as Identification
-from .smoothing import Smoothing as Smoothing
+from .result import (
+    Adequacy as Adequacy,
+    Detection as Detection,
+    Errors as Errors,
+    Identification as Identification,
+)
+from .smoothing import Smoothing as Smoothing, SmoothingChoice as SmoothingChoice

@@ -5,7 +5,7 @@ from typing import ClassVar
 import equinox as eqx
 
 from .._input import JointInput
-from .base import AbstractEffect, Candidate
+from .base import AbstractEffect, Candidate, everywhere
 
 
 class ActuatorGainEffect(AbstractEffect):
@@ -31,7 +31,9 @@ class ActuatorGainEffect(AbstractEffect):
     def candidates(self, context):
         if not isinstance(context.model.input_matrix, JointInput):
             return ()
-        return tuple(Candidate(self, name, a) for a, name in enumerate(context.actuator_names))
+        return tuple(
+            Candidate(self, name, a, acts_on="actuator") for a, name in enumerate(context.actuator_names)
+        )
 
     def force(self, candidate, context, point):
         a = candidate.index
@@ -48,3 +50,6 @@ class ActuatorGainEffect(AbstractEffect):
 
     def refitted(self, model, candidate, context):
         return None
+
+    def unrepresentable(self, candidate, parameters, q):
+        return everywhere(candidate, parameters, q)

@@ -77,12 +77,15 @@ class Candidate:
     - `where`: the joint, actuator or keypoint name.
     - `index`: the joint, actuator column or keypoint index.
     - `kind`: a variant within the effect (`"linear"` or `"quadratic"` drag), else empty.
+    - `acts_on`: what `where` names: `"joint"`, `"actuator"` or `"keypoint"` (a joint and an
+      actuator may share a name); what the data must show for the candidate to be examined.
     """
 
     effect: "AbstractEffect"
     where: str
     index: int
     kind: str = ""
+    acts_on: str = "joint"
 
     @property
     def name(self) -> str:
@@ -166,8 +169,23 @@ class AbstractEffect(eqx.Module):
         """The effect's parameters as the refitted `model` holds them (the term `augment` added), or
         `None` where the refit does not change them."""
 
+    @abc.abstractmethod
+    def unrepresentable(
+        self, candidate: Candidate, parameters: dict[str, float], q: np.ndarray
+    ) -> np.ndarray | None:
+        """Where the term `augment` adds cannot follow the effect, given its `parameters` and the
+        unwrapped joint coordinates `q` `(..., m)` of the data: a boolean mask `q.shape[:-1]` (a hinge
+        spring wound more than half a turn from its rest, which a function of the keypoints cannot
+        tell from one wound less), or `None` where it follows it everywhere. identify leaves those
+        samples out of the refit and the rollouts."""
+
 
 # -- helpers shared by the effects ---------------------------------------------------------------
+
+
+def everywhere(candidate: Candidate, parameters: dict[str, float], q: np.ndarray) -> None:
+    """`unrepresentable` of an effect whose term follows it everywhere."""
+    return None
 
 
 def value(theta: np.ndarray) -> dict[str, float]:

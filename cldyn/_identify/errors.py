@@ -82,15 +82,16 @@ def _rollout_batch(
 def rollout_errors(
     model: ConstrainedLagrangian, data: Prepared, horizon: float, window: float = 0.2
 ) -> tuple[np.ndarray, np.ndarray, int]:
-    """Keypoint position error over time of rollouts from the first interior state of every run.
+    """Keypoint position error over time of rollouts from the first kept state of every run, with the
+    controls held between kept samples (`data.u_hold`). A run's error ends before its first excluded
+    sample (a joint at its limit, which the model does not know): NaN from there on.
 
     **Returns:** `(ts, error (runs, T, keypoints), number of unconverged initial-state fits)`.
     """
     steps = min(int(round(horizon / data.dt)), data.x.shape[1] - 1)
     ts = np.arange(steps + 1) * data.dt
-    start = data.margin
-    us = data.u_raw[:, start : start + steps + 1]
-    measured = data.x_raw[:, start : start + steps + 1]
+    us = data.u_hold[:, : steps + 1]
+    measured = data.x_measured[:, : steps + 1]
     samples = max(2, min(steps, int(round(window / data.dt))))
     xs, converged = _rollout_batch(
         model,
@@ -102,13 +103,20 @@ def rollout_errors(
         samples,
     )
     error = np.linalg.norm((np.asarray(xs) - measured).reshape(xs.shape[0], steps + 1, -1, 2), axis=-1)
+    reached = np.cumsum(data.excluded[:, : steps + 1], axis=1) > 0
+    error = np.where(reached[..., None], np.nan, error)
     return ts, error, int(np.sum(~np.asarray(converged)))
 
 
 def errors(
-    model: ConstrainedLagrangian, data: Prepared, horizon: float, tests: TestFunctions
+    model: ConstrainedLagrangian,
+    data: Prepared,
+    horizon: float,
+    tests: TestFunctions,
+    kept: np.ndarray | None = None,
 ) -> tuple[Errors, np.ndarray, np.ndarray]:
-    """The model's `Errors` on `data`, with the rollout error over time.
+    """The model's `Errors` on `data`, with the rollout error over time; `kept` `(runs, n)` says which
+    test functions count for the acceleration error (all by default).
 
     **Returns:** `(errors, ts, error (runs, T, keypoints))`.
     """
@@ -116,7 +124,10 @@ def errors(
     # the acceleration error averaged over each test function, int psi (xdd_model - xdd) dt, with
     # int psi xdd dt = -int psi' xd dt: no second differences of the measurement
     error = np.einsum("nt,rtk->rnk", tests.psi, acc) + np.einsum("nt,rtk->rnk", tests.dpsi, data.xd)
-    accel_rmse = float(np.sqrt(np.mean(error**2)))
+    if kept is None:
+        kept = np.ones(error.shape[:2], dtype=bool)
+    accel_rmse = float(np.sqrt(np.sum(error[kept] ** 2) / max(error[kept].size, 1)))
     ts, error, unconverged = rollout_errors(model, data, horizon)
-    rollout_rmse = float(np.sqrt(np.mean(error**2)))
+    valid = np.isfinite(error)
+    rollout_rmse = float(np.sqrt(np.mean(error[valid] ** 2))) if valid.any() else float("nan")
     return Errors(accel_rmse, rollout_rmse, float(ts[-1]), unconverged), ts, error

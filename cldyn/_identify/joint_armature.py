@@ -6,7 +6,7 @@ import equinox as eqx
 import jax.numpy as jnp
 
 from .._mass import JointArmature
-from .base import AbstractEffect, joint_acceleration, joint_candidates, same, value
+from .base import AbstractEffect, everywhere, joint_acceleration, joint_candidates, same, value
 
 
 class JointArmatureEffect(AbstractEffect):
@@ -54,3 +54,6 @@ class JointArmatureEffect(AbstractEffect):
             if same(coordinate, context.coordinates[candidate.index]):
                 found = {"value": float(armature)}
         return found
+
+    def unrepresentable(self, candidate, parameters, q):
+        return everywhere(candidate, parameters, q)

@@ -10,6 +10,7 @@ from .base import (
     AbstractEffect,
     add_dissipation,
     dissipation_terms,
+    everywhere,
     joint_candidates,
     joint_rate,
     joint_term_value,
@@ -64,3 +65,6 @@ class JointCoulombEffect(AbstractEffect):
             dissipation_terms(model), JointCoulomb, "friction", context.coordinates[candidate.index]
         )
         return None if found is None else {"value": found}
+
+    def unrepresentable(self, candidate, parameters, q):
+        return everywhere(candidate, parameters, q)

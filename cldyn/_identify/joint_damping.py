@@ -7,6 +7,7 @@ from .base import (
     AbstractEffect,
     add_dissipation,
     dissipation_terms,
+    everywhere,
     joint_candidates,
     joint_rate,
     joint_term_value,
@@ -47,3 +48,6 @@ class JointDampingEffect(AbstractEffect):
             dissipation_terms(model), JointDamping, "damping", context.coordinates[candidate.index]
         )
         return None if found is None else {"value": found}
+
+    def unrepresentable(self, candidate, parameters, q):
+        return everywhere(candidate, parameters, q)

@@ -9,6 +9,7 @@ from .base import (
     AbstractEffect,
     add_dissipation,
     dissipation_terms,
+    everywhere,
     joint_candidates,
     joint_rate,
     joint_term_value,
@@ -52,3 +53,6 @@ class JointQuadraticDampingEffect(AbstractEffect):
             dissipation_terms(model), JointQuadraticDamping, "damping", context.coordinates[candidate.index]
         )
         return None if found is None else {"value": found}
+
+    def unrepresentable(self, candidate, parameters, q):
+        return everywhere(candidate, parameters, q)

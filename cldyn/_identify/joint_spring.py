@@ -3,6 +3,7 @@
 from typing import ClassVar
 
 import jax.numpy as jnp
+import numpy as np
 
 from .._potential import JointSpring
 from .base import AbstractEffect, add_potential, joint_candidates, potential_terms, same
@@ -51,3 +52,8 @@ class JointSpringEffect(AbstractEffect):
                 stiffness = float(term.stiffness)
                 found = {"value": stiffness, "stiffness": stiffness, "springref": float(term.rest)}
         return found
+
+    def unrepresentable(self, candidate, parameters, q):
+        # the keypoints give the angle modulo a turn: beyond half a turn from the rest, the spring's
+        # force in the data (MuJoCo counts turns) and in the keypoint model differ
+        return np.abs(q[..., candidate.index] - parameters["springref"]) > np.pi

@@ -6,7 +6,15 @@ import jax.numpy as jnp
 import numpy as np
 
 from .._dissipation import KeypointDrag
-from .base import AbstractEffect, Candidate, add_dissipation, dissipation_terms, keypoint_force, value
+from .base import (
+    AbstractEffect,
+    Candidate,
+    add_dissipation,
+    dissipation_terms,
+    everywhere,
+    keypoint_force,
+    value,
+)
 
 
 class KeypointDragEffect(AbstractEffect):
@@ -29,7 +37,7 @@ class KeypointDragEffect(AbstractEffect):
 
     def candidates(self, context):
         return tuple(
-            Candidate(self, name, i, kind=kind)
+            Candidate(self, name, i, kind=kind, acts_on="keypoint")
             for i, name in enumerate(context.keypoint_names)
             for kind in ("linear", "quadratic")
         )
@@ -56,3 +64,6 @@ class KeypointDragEffect(AbstractEffect):
         if not any(isinstance(t, KeypointDrag) for t in dissipation_terms(model)):
             return None
         return {"value": total(model) - total(context.model)}
+
+    def unrepresentable(self, candidate, parameters, q):
+        return everywhere(candidate, parameters, q)

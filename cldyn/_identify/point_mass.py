@@ -7,7 +7,7 @@ import jax.numpy as jnp
 
 from .._mass import ConstantMass, PointMasses
 from .._potential import Gravity
-from .base import AbstractEffect, Candidate, add_potential, gravity_of, keypoint_force, value
+from .base import AbstractEffect, Candidate, add_potential, everywhere, gravity_of, keypoint_force, value
 
 
 class PointMassEffect(AbstractEffect):
@@ -27,7 +27,9 @@ class PointMassEffect(AbstractEffect):
     name: ClassVar[str] = "point_mass"
 
     def candidates(self, context):
-        return tuple(Candidate(self, name, i) for i, name in enumerate(context.keypoint_names))
+        return tuple(
+            Candidate(self, name, i, acts_on="keypoint") for i, name in enumerate(context.keypoint_names)
+        )
 
     def force(self, candidate, context, point):
         i = candidate.index
@@ -50,3 +52,6 @@ class PointMassEffect(AbstractEffect):
 
     def refitted(self, model, candidate, context):
         return None
+
+    def unrepresentable(self, candidate, parameters, q):
+        return everywhere(candidate, parameters, q)

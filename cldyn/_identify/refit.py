@@ -75,13 +75,15 @@ def refit(
     weights: np.ndarray,
     tests: TestFunctions,
     *,
+    kept: np.ndarray | None = None,
     max_steps: int | None = None,
 ) -> tuple[ConstrainedLagrangian, optx.RESULTS]:
     """Least-squares refit of the weighted weak joint-space residual (optimistix).
 
     Levenberg-Marquardt for parametric models; for larger ones (a neural potential), whose Jacobian
     would not fit in memory, BFGS on the sum of squares, which needs gradients only. A refit that
-    stops short (at `max_steps`) keeps its last iterate: the caller reports the `result`.
+    stops short (at `max_steps`) keeps its last iterate: the caller reports the `result`. `kept`
+    `(runs, n)` says which weak equations count (all by default).
 
     **Returns:** `(model, result)`, with the optimistix `RESULTS` of the solve.
     """
@@ -90,12 +92,14 @@ def refit(
     size = sum(leaf.size for leaf in jax.tree_util.tree_leaves(params))
     if size == 0:
         return model, optx.RESULTS.successful
+    if kept is None:
+        kept = np.ones((data.x.shape[0], tests.count), dtype=bool)
     args = (
         static,
         joints,
         data.arrays(),
         (jnp.asarray(tests.psi), jnp.asarray(tests.dpsi)),
-        jnp.asarray(weights),
+        jnp.asarray(weights)[None, None, :] * jnp.asarray(kept, dtype=data.x.dtype)[:, :, None],
     )
     if size <= _LM_MAX_PARAMETERS:
         solver = optx.LevenbergMarquardt(rtol=1e-8, atol=1e-10)
@@ -122,4 +126,4 @@ def _weak_residual(params, args):
         - jnp.einsum("nt,rtm->rnm", psi, rate)
         + jnp.einsum("nt,rtm->rnm", psi, direct)
     )
-    return (weak * weights[None, None, :]).reshape(-1)
+    return (weak * weights).reshape(-1)

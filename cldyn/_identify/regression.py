@@ -28,6 +28,17 @@ class Criteria(eqx.Module):
     - `min_share`: the effect's generalised force, RMS, relative to the RMS of the inertial forces
       `G^T M xdd`: smaller effects do not matter to the motion and are not reported.
 
+    And when the data can support a conclusion at all (else "nothing could be detected"):
+
+    - `min_equations`: independent weak equations per joint in the fit runs, at least.
+    - `max_detectable_share`: the smallest effect the noise lets through (as a share of the inertial
+      forces, see `Adequacy.detectable_share`) must not exceed this.
+    - `min_samples_per_timescale`: samples per time scale of the motion, at least (motion faster than
+      this is not resolved by the sampling).
+
+    Whatever the criteria, a round's detections are kept only where the model with them predicts the
+    held-out runs better: a lower held-out rollout error.
+
     !!! example
 
         ```python
@@ -41,6 +52,9 @@ class Criteria(eqx.Module):
     min_inclusion: float = eqx.field(static=True, default=0.9)
     min_holdout_drop: float = eqx.field(static=True, default=0.05)
     min_share: float = eqx.field(static=True, default=0.003)
+    min_equations: float = eqx.field(static=True, default=20.0)
+    max_detectable_share: float = eqx.field(static=True, default=0.05)
+    min_samples_per_timescale: float = eqx.field(static=True, default=3.0)
 
     def to_dict(self) -> dict[str, float]:
         """The criteria by name, for reports."""
@@ -180,7 +194,8 @@ class Problem:
 
     **Fields:** `candidates`; `r_fit` `(runs, n, m)`, the residual of the fit runs; `f_fit`
     `(runs, n, m, C)`, their features; `inertial_fit` `(runs, n, m)`, their inertial forces;
-    `r_held`, `f_held` the same for the held-out runs; `weights` `(m,)`, per joint.
+    `r_held`, `f_held` the same for the held-out runs; `weights` `(m,)`, per joint; `kept_fit`,
+    `kept_held` `(runs, n)`, the equations that count (the others touch excluded samples).
     """
 
     candidates: tuple[Candidate, ...]
@@ -190,6 +205,8 @@ class Problem:
     r_held: np.ndarray
     f_held: np.ndarray
     weights: np.ndarray
+    kept_fit: np.ndarray
+    kept_held: np.ndarray
 
 
 @dataclasses.dataclass(frozen=True)
@@ -202,14 +219,14 @@ class Attribution:
     groups: Groups
 
 
-def _per_run_normals(problem: Problem, r, f, scale):
-    w = problem.weights[None, None, :, None]
+def _per_run_normals(problem: Problem, r, f, kept, scale):
+    w = problem.weights[None, None, :, None] * kept[:, :, None, None]
     fw = f * w / scale[None, None, None, :]
-    rw = r * problem.weights[None, None, :]
+    rw = r * w[..., 0]
     A = np.einsum("rtmc,rtmd->rcd", fw, fw)
     b = np.einsum("rtmc,rtm->rc", fw, rw)
     c = np.einsum("rtm,rtm->r", rw, rw)
-    n = np.full(r.shape[0], r.shape[1] * r.shape[2])
+    n = kept.sum(axis=1) * r.shape[2]
     return A, b, c, n
 
 
@@ -235,12 +252,13 @@ def attribute(
     """
     candidates = problem.candidates
     groups = Groups.of(candidates)
-    w = problem.weights[None, None, :, None]
-    scale = np.sqrt(np.mean((problem.f_fit * w) ** 2, axis=(0, 1, 2)))
+    kept = problem.kept_fit
+    w = problem.weights[None, None, :, None] * kept[:, :, None, None]
+    scale = np.sqrt(np.sum((problem.f_fit * w) ** 2, axis=(0, 1, 2)) / max(kept.sum() * w.shape[2], 1))
     scale = np.where(scale > 0, scale, 1.0)
-    A_r, b_r, c_r, n_r = _per_run_normals(problem, problem.r_fit, problem.f_fit, scale)
+    A_r, b_r, c_r, n_r = _per_run_normals(problem, problem.r_fit, problem.f_fit, kept, scale)
     total = Normal(A_r.sum(0), b_r.sum(0), float(c_r.sum()), int(n_r.sum()))
-    A_h, b_h, c_h, n_h = _per_run_normals(problem, problem.r_held, problem.f_held, scale)
+    A_h, b_h, c_h, n_h = _per_run_normals(problem, problem.r_held, problem.f_held, problem.kept_held, scale)
     held = Normal(A_h.sum(0), b_h.sum(0), float(c_h.sum()), int(n_h.sum()))
     gain = criteria.min_bic_gain
 
@@ -304,9 +322,9 @@ def attribute(
         holdout_drop = 1.0 - rss_held_with / rss_held_without if rss_held_without > 0 else 0.0
         sd = float(np.std(samples[:, 0])) if samples is not None and len(samples) > 1 else float("inf")
         t_stat = abs(theta[0]) / sd if sd > 0 else float("inf")
-        effect_force = np.einsum("rtmc,c->rtm", problem.f_fit[..., own], theta)
-        inertial = max(np.sqrt(np.mean(problem.inertial_fit**2)), 1e-300)
-        share = float(np.sqrt(np.mean(effect_force**2)) / inertial)
+        effect_force = np.einsum("rtmc,c->rtm", problem.f_fit[..., own], theta) * kept[..., None]
+        inertial = max(float(np.sqrt(np.sum((problem.inertial_fit * kept[..., None]) ** 2))), 1e-300)
+        share = float(np.sqrt(np.sum(effect_force**2)) / inertial)
         main = c.parameters(theta)
         values = np.array([c.parameters(v)["value"] for v in samples]) if samples is not None else None
         lo, hi = (
@@ -314,12 +332,16 @@ def attribute(
             if values is not None and len(values)
             else (float("nan"), float("nan"))
         )
-        ok = (
-            bic_without - bic_all >= gain
-            and t_stat >= criteria.min_t
-            and inclusion[position] >= criteria.min_inclusion
-            and holdout_drop >= criteria.min_holdout_drop
-            and share >= criteria.min_share
+        failed = tuple(
+            name
+            for name, passed in (
+                ("bic_gain", bic_without - bic_all >= gain),
+                ("t", t_stat >= criteria.min_t),
+                ("inclusion", inclusion[position] >= criteria.min_inclusion),
+                ("holdout_drop", holdout_drop >= criteria.min_holdout_drop),
+                ("share", share >= criteria.min_share),
+            )
+            if not passed
         )
         selected.append(
             Detection(
@@ -334,8 +356,9 @@ def attribute(
                 share=share,
                 alternatives=tuple(sorted(candidates[h].label for h in classes[position] if h != g)),
                 round=round_index,
-                detected=bool(ok),
+                detected=not failed,
                 theta=theta,
+                failed=failed,
             )
         )
     selected.sort(key=lambda d: -d.bic_gain)

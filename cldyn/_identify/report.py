@@ -3,6 +3,7 @@
 import json
 import os
 import pathlib
+import warnings
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
@@ -22,6 +23,7 @@ def _json_default(value):
 def markdown(report: dict[str, Any]) -> str:
     """`report.md` from the content of `report.json`."""
     lines = ["# Missing physics: identification report", ""]
+    adequacy = report.get("adequacy") or {}
     if report["detected"]:
         lines += [
             "| effect | where | value | 95% interval | BIC gain | t | bootstrap | held-out drop "
@@ -36,6 +38,9 @@ def markdown(report: dict[str, Any]) -> str:
                 f"{ev['bic_gain']:.1f} | {ev['t']:.1f} | {ev['bootstrap_inclusion']:.2f} | "
                 f"{100 * ev['holdout_drop']:.1f}% | {', '.join(d['alternatives']) or '-'} |"
             )
+    elif adequacy.get("problems"):
+        lines.append("Nothing could be detected: the data cannot support a conclusion.")
+        lines += [""] + [f"- {p}" for p in adequacy["problems"]]
     else:
         lines.append("No missing effect passed the detection criteria.")
     lines += [
@@ -55,16 +60,29 @@ def markdown(report: dict[str, Any]) -> str:
                 f"t {ev['t']:.1f}, bootstrap {ev['bootstrap_inclusion']:.2f}, "
                 f"held-out drop {100 * ev['holdout_drop']:.1f}%, share {100 * ev['share']:.2f}%)"
             )
+    if adequacy.get("unexamined"):
+        lines += ["", "Not examined (the data cannot show them):", ""]
+        lines += [f"- {u['candidate']}: {u['reason']}" for u in adequacy["unexamined"]]
     if report["warnings"]:
         lines += ["", "Warnings:", ""] + [f"- {w}" for w in report["warnings"]]
     s = report["settings"]
+    sm = s["smoothing"]
     lines += [
         "",
-        f"Criteria: {s['criteria']}. Velocities: Savitzky-Golay, window {s['smoothing']['window']}, order "
-        f"{s['smoothing']['order']}; equations in weak form, test functions of "
-        f"{s['smoothing']['test_width']} samples every {s['smoothing']['test_stride']}. "
-        f"{s['runs']} runs ({len(s['held_out_runs'])} held out), "
-        f"{s['bootstrap']} bootstrap replicates, seed {s['seed']}; {s['seconds']:.0f} s.",
+        f"Data: {s['runs']} runs ({len(s['held_out_runs'])} held out) of {s['samples']} samples every "
+        f"{1e3 * s['dt']:.4g} ms; position noise {1e3 * sm['noise']:.3g} mm (estimated), motion time scale "
+        f"{1e3 * sm['timescale_seconds']:.3g} ms; smallest detectable effect "
+        f"{100 * adequacy.get('detectable_share', float('nan')):.2g}% of the inertial forces; "
+        f"{100 * s['excluded_equations']:.0f}% of the equations excluded.",
+        "",
+        f"Velocities: Savitzky-Golay, window {1e3 * sm['window_seconds']:.4g} ms ({sm['window']} samples), "
+        f"order {sm['order']}; kept every {sm['decimation']} samples "
+        f"({1e3 * sm['interval_seconds']:.4g} ms); "
+        f"equations in weak form, test functions of {1e3 * sm['test_width_seconds']:.4g} ms every "
+        f"{1e3 * sm['test_stride_seconds']:.4g} ms. How each was set: {sm['chosen']}.",
+        "",
+        f"Criteria: {s['criteria']}. {s['bootstrap']} bootstrap replicates, seed {s['seed']}; "
+        f"identify took {s['seconds']:.1f} s.",
         "",
         "Plots: `residual_vs_feature.png`, `error_over_time.png`.",
         "",
@@ -73,17 +91,24 @@ def markdown(report: dict[str, Any]) -> str:
 
 
 def _error_over_time(figure, result: "Identification"):
+    with warnings.catch_warnings():  # samples after every run's first contact with a joint limit
+        warnings.simplefilter("ignore", RuntimeWarning)
+        return _draw_error_over_time(figure, result)
+
+
+def _draw_error_over_time(figure, result: "Identification"):
     curves = result.curves
     fig = figure(figsize=(6, 4))
     ax = fig.subplots()
     for key, style in (("before", "C3"), ("after", "C2")):
-        err = getattr(curves, key)  # (runs, T, keypoints)
-        mean = err.mean(axis=(0, 2))
-        ax.plot(curves.ts, 1e3 * mean, style, label=f"{key}: rmse {1e3 * np.sqrt(np.mean(err**2)):.2f} mm")
+        err = getattr(curves, key)  # (runs, T, keypoints); NaN after a joint limit is reached
+        mean = np.nanmean(err, axis=(0, 2))
+        rmse = 1e3 * np.sqrt(np.nanmean(err**2))
+        ax.plot(curves.ts, 1e3 * mean, style, label=f"{key}: rmse {rmse:.2f} mm")
         ax.fill_between(
             curves.ts,
-            1e3 * np.percentile(err.mean(2), 10, axis=0),
-            1e3 * np.percentile(err.mean(2), 90, axis=0),
+            1e3 * np.nanpercentile(err.mean(2), 10, axis=0),
+            1e3 * np.nanpercentile(err.mean(2), 90, axis=0),
             color=style,
             alpha=0.15,
         )

@@ -20,7 +20,9 @@ class Detection:
     `parameters` (all of the effect's parameters); the evidence `bic_gain`, `t`, `inclusion`,
     `holdout_drop`, `share`; `alternatives`: candidates that the data cannot tell apart from it;
     `round`: the round of the loop that found it; `detected`: whether it passed every criterion;
-    `theta`: its regression coefficients.
+    `theta`: its regression coefficients; `failed`: the criteria it failed (`"bic_gain"`, `"t"`,
+    `"inclusion"`, `"holdout_drop"`, `"share"`, or `"rollout"` where the model with it predicted the
+    held-out runs no better).
     """
 
     candidate: Candidate
@@ -36,6 +38,7 @@ class Detection:
     round: int
     detected: bool
     theta: np.ndarray = dataclasses.field(repr=False, default_factory=lambda: np.zeros(0))
+    failed: tuple[str, ...] = ()
 
     @property
     def name(self) -> str:
@@ -77,6 +80,8 @@ class Detection:
         }
         out["alternatives"] = list(self.alternatives)
         out["round"] = self.round
+        if self.failed:
+            out["failed"] = list(self.failed)
         return out
 
 
@@ -133,6 +138,44 @@ class Errors:
 
 
 @dataclasses.dataclass(frozen=True)
+class Adequacy:
+    """What the data can support.
+
+    **Fields:**
+
+    - `problems`: why the data cannot support a conclusion (too short, too noisy, motion faster than
+      the sampling resolves); empty when they can. With problems and nothing detected, the outcome is
+      "nothing could be detected", not "nothing detected".
+    - `unexamined`: `(candidate label, reason)` for candidates left out because the data cannot show
+      them (a joint that never moves, a control that never varies).
+    - `detectable_share`: the smallest effect, as a share of the inertial forces, that would pass the
+      BIC criterion through the noise of these data (an effect unlike the model's forces; estimated by
+      passing simulated noise of the estimated level through the weak equations).
+    - `equations`: independent weak equations per joint in the fit runs.
+    """
+
+    problems: tuple[str, ...]
+    unexamined: tuple[tuple[str, str], ...]
+    detectable_share: float
+    equations: float
+
+    @property
+    def adequate(self) -> bool:
+        """Whether the data can support a conclusion."""
+        return not self.problems
+
+    def to_dict(self) -> dict[str, Any]:
+        """The report entry."""
+        return {
+            "adequate": self.adequate,
+            "problems": list(self.problems),
+            "unexamined": [{"candidate": label, "reason": why} for label, why in self.unexamined],
+            "detectable_share": self.detectable_share,
+            "equations": self.equations,
+        }
+
+
+@dataclasses.dataclass(frozen=True)
 class Curves:
     """The held-out keypoint errors over time, `(runs, T, keypoints)`, before and after."""
 
@@ -165,7 +208,9 @@ class Identification:
     - `settings`: everything needed to reproduce the run (JSON-able).
     - `rounds`: one `Round` per round of the loop.
     - `warnings`: what did not go as it should (a refit or an initial-state fit that did not
-      converge, float32 arithmetic); also in the report.
+      converge, detections whose held-out rollouts got worse, joint limits reached, float32
+      arithmetic); also in the report.
+    - `adequacy`: what the data can support (`Adequacy`).
     - `curves`, `scatter`: the data of the plots.
     """
 
@@ -178,8 +223,20 @@ class Identification:
     settings: dict[str, Any]
     rounds: tuple[Round, ...]
     warnings: tuple[str, ...] = ()
+    adequacy: Adequacy | None = None
     curves: Curves | None = dataclasses.field(repr=False, default=None)
     scatter: tuple[Scatter, ...] = dataclasses.field(repr=False, default=())
+
+    @property
+    def outcome(self) -> str:
+        """`"detected"` when an effect was found; otherwise `"nothing detected"` where the data could
+        have shown one, `"nothing could be detected"` where they cannot support a conclusion (see
+        `adequacy.problems`)."""
+        if self.detected:
+            return "detected"
+        if self.adequacy is not None and not self.adequacy.adequate:
+            return "nothing could be detected"
+        return "nothing detected"
 
     @property
     def improvement(self) -> dict[str, float]:
@@ -193,6 +250,7 @@ class Identification:
     def to_dict(self) -> dict[str, Any]:
         """The content of `report.json`."""
         return {
+            "outcome": self.outcome,
             "detected": [d.to_dict() for d in self.detected],
             "before": self.before.to_dict(),
             "after": self.after.to_dict(),
@@ -200,13 +258,16 @@ class Identification:
             "rejected": [d.to_dict() for d in self.rejected],
             "rounds": [r.to_dict() for r in self.rounds],
             "warnings": list(self.warnings),
+            "adequacy": None if self.adequacy is None else self.adequacy.to_dict(),
             "settings": self.settings,
         }
 
     def summary(self) -> str:
         """A few human-readable lines."""
         lines = []
-        if not self.detected:
+        if self.outcome == "nothing could be detected":
+            lines.append("nothing could be detected: " + "; ".join(self.adequacy.problems))
+        elif not self.detected:
             lines.append("no missing effect detected")
         for d in self.detected:
             c = d.candidate
@@ -218,7 +279,17 @@ class Identification:
         for key, unit in (("accel_rmse", "m/s^2"), ("rollout_rmse_1s", "m")):
             b, a = getattr(self.before, key), getattr(self.after, key)
             lines.append(f"{key}: {b:.4g} -> {a:.4g} {unit} ({b / a:.1f}x)" if a > 0 else f"{key}: {b:.4g}")
+        if self.detected and self.adequacy is not None and not self.adequacy.adequate:
+            lines += [f"caution: {p}" for p in self.adequacy.problems]
+        if self.adequacy is not None:
+            reasons: dict[str, list[str]] = {}
+            for label, why in self.adequacy.unexamined:
+                reasons.setdefault(why, []).append(label)
+            lines += [f"not examined: {why}: {', '.join(labels)}" for why, labels in reasons.items()]
         lines += [f"warning: {w}" for w in self.warnings]
+        seconds = self.settings.get("seconds")
+        if seconds is not None:
+            lines.append(f"identify took {seconds:.1f} s")
         return "\n".join(lines)
 
     def save(self, directory: "str | os.PathLike") -> pathlib.Path:

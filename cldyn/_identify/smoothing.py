@@ -1,7 +1,9 @@
-"""From measured positions to the data the weak form needs: smoothing differentiation, test
-functions, and the prepared runs."""
+"""From measured positions to the data the weak form needs, in physical time: Savitzky-Golay smoothing
+differentiation, test functions, decimation and the prepared runs. The settings are chosen from the
+data (`choice.py`) unless given."""
 
 import dataclasses
+from typing import Any
 
 import equinox as eqx
 import jax
@@ -13,106 +15,201 @@ from .._coordinates import AbstractCoordinate
 
 
 class Smoothing(eqx.Module):
-    """How positions become the equations that identification regresses.
+    """How positions become the equations that identification regresses; every length in seconds.
 
     Positions and velocities come from Savitzky-Golay smoothing differentiation: at every sample a
-    polynomial of degree `order` is fitted by least squares to the `window` samples centred on it, and
-    its value and derivatives there are the estimates (samples closer than `window // 2` to an end of
-    a run are dropped). Accelerations are never needed by the regression: the equations of motion are
-    integrated against smooth test functions $\\psi(t) = (1 - s^2)^4$ of `test_width` samples, placed
-    every `test_stride` samples, and integration by parts moves the time derivative onto $\\psi$
-    (the weak form). Second derivatives of measured positions are the weak point of direct residuals:
-    at 100 Hz a fast acrobot's Savitzky-Golay accelerations carry a systematic error of several
-    percent, enough to fake an inertia effect; the weak form removes it. The defaults suit 100 Hz data
-    with position noise up to a millimetre. Smoothed accelerations are still computed, for the
-    `accel_rmse` figure of the report.
+    polynomial of degree `order` is fitted by least squares to the samples within `window` seconds
+    centred on it, and its value and derivative there are the estimates (half a window is lost at
+    each end of a run). Accelerations are never needed by the regression: the equations of motion are
+    integrated against smooth test functions $\\psi(t) = (1 - s^2)^4$ of `test_width` seconds, placed
+    every `test_stride` seconds, and integration by parts moves the time derivative onto $\\psi$
+    (the weak form). Data sampled faster than the smoothed motion needs are decimated after smoothing:
+    the smoothed positions and velocities are taken every few samples, and the controls averaged over
+    each interval, so that 2 kHz data cost no more than the motion requires.
+
+    Every setting left at `None` is chosen from the data (`Smoothing.choose`; see
+    `cldyn.SmoothingChoice` for the criteria): the window minimises the estimated mean-square error of
+    the smoothed velocities, given the position noise estimated from high-order differences; the test
+    functions span twice the motion's time scale (the ratio of RMS velocity to RMS acceleration). The
+    choice, with the noise and time scale it rests on, is recorded in the report.
 
     **Arguments:**
 
-    - `window`: odd number of samples in each Savitzky-Golay fit.
-    - `order`: its polynomial degree, at least 2 and less than `window`.
-    - `test_width`: odd number of samples spanned by each test function.
-    - `test_stride`: samples between the centres of consecutive test functions.
+    - `window`: the Savitzky-Golay window, seconds; chosen from the data by default.
+    - `order`: its polynomial degree, at least 2.
+    - `test_width`: the width of each test function, seconds; chosen from the data by default.
+    - `test_stride`: seconds between the centres of consecutive test functions; a sixth of the width
+      by default.
+    - `decimate`: whether to thin out the smoothed samples where the rate is far above what the
+      smoothed motion needs (the result is the same to quadrature accuracy, at a fraction of the cost).
 
     !!! example
 
         ```python
         result = cldyn.identify(model, data, joint_coordinates=coordinates,
-                                smoothing=cldyn.Smoothing(window=15, order=6))
+                                smoothing=cldyn.Smoothing(window=0.1, test_width=0.3))
         ```
     """
 
-    window: int = eqx.field(static=True, default=11)
+    window: float | None = eqx.field(static=True, default=None)
     order: int = eqx.field(static=True, default=6)
-    test_width: int = eqx.field(static=True, default=31)
-    test_stride: int = eqx.field(static=True, default=5)
+    test_width: float | None = eqx.field(static=True, default=None)
+    test_stride: float | None = eqx.field(static=True, default=None)
+    decimate: bool = eqx.field(static=True, default=True)
 
     def __check_init__(self):
-        if self.window % 2 != 1 or self.window < 3:
-            raise ValueError(f"window must be an odd number >= 3, got {self.window}")
-        if not 2 <= self.order < self.window:
-            raise ValueError(f"order must be in [2, window), got {self.order}")
-        if self.test_width % 2 != 1 or self.test_width < 5 or not 1 <= self.test_stride <= self.test_width:
+        for name in ("window", "test_width", "test_stride"):
+            value = getattr(self, name)
+            if value is not None and not (np.isfinite(value) and value > 0):
+                raise ValueError(f"Smoothing: {name} must be a positive number of seconds, got {value!r}")
+        if not (isinstance(self.order, int) and self.order >= 2):
+            raise ValueError(f"Smoothing: order must be an integer >= 2, got {self.order!r}")
+        if (
+            self.test_stride is not None
+            and self.test_width is not None
+            and self.test_stride > self.test_width
+        ):
             raise ValueError(
-                f"test_width must be odd and >= 5, and 1 <= test_stride <= test_width; got "
-                f"{self.test_width}, {self.test_stride}"
+                f"Smoothing: test_stride ({self.test_stride} s) must not exceed test_width "
+                f"({self.test_width} s)"
             )
+
+    def choose(self, x: ArrayLike, dt: float) -> "SmoothingChoice":
+        """The settings for positions `x` `(runs, T, k)` sampled every `dt` seconds: those given, and
+        the others chosen from the data. **Returns:** a `cldyn.SmoothingChoice`."""
+        from .choice import choose
+
+        return choose(self, np.asarray(x, dtype=float), float(dt))
+
+
+def savitzky_golay(window: int, order: int) -> np.ndarray:
+    """The `(3, window)` Savitzky-Golay filters for value, first and second derivative at the centre,
+    per unit sample interval (divide by `dt` and `dt**2`)."""
+    half = window // 2
+    # offsets scaled to [-1, 1]: the Vandermonde matrix of raw offsets is ill-conditioned for long windows
+    scaled = np.arange(-half, half + 1, dtype=float) / max(half, 1)
+    vandermonde = scaled[:, None] ** np.arange(order + 1)[None, :]
+    fit = np.linalg.pinv(vandermonde)  # (order + 1, window): polynomial coefficients in the scaled offset
+    return np.stack([fit[0], fit[1] / max(half, 1), 2.0 * fit[2] / max(half, 1) ** 2])
+
+
+@dataclasses.dataclass(frozen=True)
+class SmoothingChoice:
+    """The smoothing and weak-form settings `identify` used, in samples and seconds, with the
+    estimates they were chosen from.
+
+    **Fields:**
+
+    - `dt`: the sampling interval of the data, seconds.
+    - `window`, `order`: the Savitzky-Golay window (samples of the data, odd) and degree.
+    - `step`: the decimation: smoothed samples are kept every `step` samples of the data.
+    - `test_width`, `test_stride`: the test functions, in kept samples (`interval = step * dt` each).
+    - `noise`: the position noise estimated from the data (metres, standard deviation): the smallest
+      over orders 2 to 6 of a robust (median absolute) estimate from `d`-th differences, which white
+      noise inflates by `sqrt(binom(2d, d))` and a smooth motion hardly touches.
+    - `timescale`: the motion's time scale, RMS velocity / RMS acceleration of the smoothed keypoints
+      (noise removed), seconds; a sinusoid of angular frequency `w` has `1 / w`.
+    - `velocity_error`: the estimated RMS error of the smoothed velocities at the chosen window.
+    - `chosen`: for each of `window`, `test_width` and `step`, how it was set: `"given"` or the
+      criterion that chose it.
+
+    The criteria: the **window** minimises the estimated mean-square velocity error, the noise part
+    `noise^2 |h_1|^2` of the filter `h_1` plus the squared bias, estimated from the difference to the
+    velocities of a window 1.6 times shorter (bias grows as `window^order`), less that difference's
+    noise part; at least `order + 3` samples. The **test functions** span `2 * timescale` (their
+    half-power frequency is then about twice the motion's RMS frequency), at least 15 samples of the
+    data and at most a third of a run; the stride is a sixth of the width. **Decimation** keeps a
+    sample every `min(window / 10, test_width / 24)` seconds (rounded down to samples of the data),
+    or every `test_width / 24` where the velocity noise left by the smoothing is below `1e-4` of the
+    RMS velocity (nothing then to alias).
+    """
+
+    dt: float
+    window: int
+    order: int
+    step: int
+    test_width: int
+    test_stride: int
+    noise: float
+    timescale: float
+    velocity_error: float
+    chosen: dict[str, str] = dataclasses.field(default_factory=dict)
+
+    @property
+    def interval(self) -> float:
+        """Seconds between the kept samples."""
+        return self.step * self.dt
+
+    @property
+    def margin(self) -> int:
+        """Samples of the data lost at each end of a run."""
+        return self.window // 2
 
     @property
     def correlation(self) -> float:
         """Rows of the weak equations per independent one (test functions overlap)."""
         return self.test_width / self.test_stride
 
-    @property
-    def margin(self) -> int:
-        """Samples lost at each end of a run."""
-        return self.window // 2
+    def grid(self, samples: int) -> np.ndarray:
+        """The indices of the kept samples in runs of `samples` samples of the data."""
+        return np.arange(self.margin, samples - self.margin, self.step)
 
-    def coefficients(self, dt: float) -> np.ndarray:
-        """The `(3, window)` filters for position, velocity and acceleration at the centre."""
-        half = self.margin
-        offsets = np.arange(-half, half + 1, dtype=float)
-        vandermonde = offsets[:, None] ** np.arange(self.order + 1)[None, :]
-        fit = np.linalg.pinv(vandermonde)  # (order + 1, window): polynomial coefficients
-        return np.stack([fit[0], fit[1] / dt, 2.0 * fit[2] / dt**2])
+    def smooth(self, x: ArrayLike) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Smoothed `(x, xd, xdd)` at the kept samples of positions `x` `(runs, T, k)`.
 
-    def __call__(self, x: np.ndarray, dt: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """Smoothed `(x, xd, xdd)` at the interior samples of each run.
-
-        **Arguments:**
-
-        - `x`: positions, shape `(runs, T, k)`.
-        - `dt`: the sampling interval.
-
-        **Returns:** three arrays of shape `(runs, T - 2 * margin, k)`.
+        **Returns:** three arrays of shape `(runs, len(grid(T)), k)`.
         """
         x = np.asarray(x, dtype=float)
         if x.ndim != 3:
             raise ValueError(f"positions must have shape (runs, T, k), got {x.shape}")
         if x.shape[1] < self.window:
-            raise ValueError(f"runs of {x.shape[1]} samples are shorter than the window {self.window}")
-        windows = np.lib.stride_tricks.sliding_window_view(x, self.window, axis=1)
-        filters = self.coefficients(dt)
+            raise ValueError(
+                f"runs of {x.shape[1]} samples ({(x.shape[1] - 1) * self.dt:.3g} s) are shorter than the "
+                f"smoothing window of {self.window} samples ({self.window * self.dt:.3g} s)"
+            )
+        filters = savitzky_golay(self.window, self.order) / np.array([1.0, self.dt, self.dt**2])[:, None]
+        windows = np.lib.stride_tricks.sliding_window_view(x, self.window, axis=1)[:, :: self.step]
         out = np.einsum("rtkw,dw->drtk", windows, filters)
         return out[0], out[1], out[2]
 
-    def test_functions(self, samples: int, dt: float) -> "TestFunctions":
-        """The test functions over runs of `samples` (interior) samples."""
+    def test_functions(self, samples: int) -> "TestFunctions":
+        """The test functions over runs of `samples` kept samples."""
         half = self.test_width // 2
         centres = np.arange(half, samples - half, self.test_stride)
         t = np.arange(samples)[None, :] - centres[:, None]
         s = t / (half + 1)
         inside = np.abs(s) < 1
+        interval = self.interval
         psi = np.where(inside, (1 - s**2) ** 4, 0.0)
-        dpsi = np.where(inside, -8 * s * (1 - s**2) ** 3 / ((half + 1) * dt), 0.0)
-        norm = psi.sum(axis=1, keepdims=True) * dt
-        return TestFunctions(psi / norm * dt, dpsi / norm * dt)
+        dpsi = np.where(inside, -8 * s * (1 - s**2) ** 3 / ((half + 1) * interval), 0.0)
+        norm = psi.sum(axis=1, keepdims=True) * interval
+        return TestFunctions(psi / norm * interval, dpsi / norm * interval)
+
+    def to_dict(self) -> dict[str, Any]:
+        """The settings for reports, in samples and seconds."""
+        return {
+            "velocities": "savitzky-golay",
+            "window": self.window,
+            "window_seconds": self.window * self.dt,
+            "order": self.order,
+            "decimation": self.step,
+            "interval_seconds": self.interval,
+            "equations": "weak form, test functions (1 - s^2)^4",
+            "test_width": self.test_width,
+            "test_width_seconds": self.test_width * self.interval,
+            "test_stride": self.test_stride,
+            "test_stride_seconds": self.test_stride * self.interval,
+            "noise": self.noise,
+            "timescale_seconds": self.timescale,
+            "velocity_error": self.velocity_error,
+            "chosen": dict(self.chosen),
+        }
 
 
 @dataclasses.dataclass(frozen=True)
 class TestFunctions:
     """Smooth bumps `psi_n(t)` with unit integral and their time derivatives, shape `(n, samples)`
-    each, already multiplied by `dt` (the quadrature weight)."""
+    each, already multiplied by the sample interval (the quadrature weight)."""
 
     __test__ = False  # not a pytest class
 
@@ -133,24 +230,35 @@ class TestFunctions:
             + np.einsum("nt,rt...->rn...", self.psi, np.asarray(direct))
         )
 
+    def support(self, mask: np.ndarray) -> np.ndarray:
+        """Which test functions of each run touch a flagged sample: `mask` `(runs, T)` -> `(runs, n)`."""
+        return np.einsum("nt,rt->rn", (self.psi > 0).astype(float), mask.astype(float)) > 0
+
 
 @dataclasses.dataclass(frozen=True)
 class Prepared:
-    """Smoothed runs: interior samples (`margin` dropped at each end) and the raw measurement."""
+    """Smoothed runs at the kept samples, with the measurement and the controls there.
 
-    x: np.ndarray  # (runs, T', k) smoothed, interior samples
+    `u` is the control averaged over the interval centred on each kept sample (what the weak form's
+    quadrature needs); `u_hold` the control averaged over the interval that starts there (held until
+    the next kept sample, it gives the same impulse as the data's controls: what rollouts need);
+    `x_measured` the measured positions at the kept samples; `excluded` flags samples that the
+    equations must leave out (a joint at its limit); `dt` the interval between kept samples.
+    """
+
+    x: np.ndarray  # (runs, T', k)
     xd: np.ndarray
     xdd: np.ndarray
     u: np.ndarray  # (runs, T', l)
     q: np.ndarray  # (runs, T', m) unwrapped joint coordinates
-    u_raw: np.ndarray  # (runs, T, l) all controls
-    x_raw: np.ndarray  # (runs, T, k) all measured positions
+    u_hold: np.ndarray  # (runs, T', l)
+    x_measured: np.ndarray  # (runs, T', k)
+    excluded: np.ndarray  # (runs, T') bool
     dt: float
-    margin: int
 
     def take(self, runs: np.ndarray) -> "Prepared":
         """The runs at the given indices."""
-        fields = ("x", "xd", "xdd", "u", "q", "u_raw", "x_raw")
+        fields = ("x", "xd", "xdd", "u", "q", "u_hold", "x_measured", "excluded")
         return dataclasses.replace(self, **{name: getattr(self, name)[runs] for name in fields})
 
     def arrays(self) -> tuple[jax.Array, ...]:
@@ -165,21 +273,47 @@ def _joint_positions(coordinates, x):
     return jax.vmap(jax.vmap(lambda y: jnp.stack([c(y) for c in coordinates])))(x)
 
 
+def joint_positions(coordinates: tuple[AbstractCoordinate, ...], x: np.ndarray) -> np.ndarray:
+    """The joint coordinates `(runs, T, m)` of positions `(runs, T, k)`, unwrapped along each run."""
+    q = np.asarray(_joint_positions(tuple(coordinates), jnp.asarray(x)))
+    return np.unwrap(q, axis=1) if q.size else q
+
+
+def _block_means(u: np.ndarray, starts: np.ndarray, length: int) -> np.ndarray:
+    """Means of `u` `(runs, T, l)` over `[start, start + length)` for each start (clipped to the run)."""
+    cumulative = np.concatenate([np.zeros_like(u[:, :1]), np.cumsum(u, axis=1)], axis=1)
+    lo = np.clip(starts, 0, u.shape[1])
+    hi = np.clip(starts + length, 1, u.shape[1])
+    lo = np.minimum(lo, hi - 1)
+    return (cumulative[:, hi] - cumulative[:, lo]) / (hi - lo)[None, :, None]
+
+
 def prepare(
-    x: np.ndarray, u: np.ndarray, dt: float, smoothing: Smoothing, coordinates: tuple[AbstractCoordinate, ...]
+    x: np.ndarray, u: np.ndarray, choice: SmoothingChoice, coordinates: tuple[AbstractCoordinate, ...]
 ) -> Prepared:
-    """Smooth the runs and compute their unwrapped joint coordinates.
+    """Smooth the runs, keep every `choice.step`-th sample, and compute their unwrapped joint
+    coordinates.
 
     **Arguments:**
 
-    - `x`: measured positions `(runs, T, k)`; `u`: controls `(runs, T, l)`; `dt`: the interval.
-    - `smoothing`: the `Smoothing`; `coordinates`: the joint coordinates.
+    - `x`: measured positions `(runs, T, k)`; `u`: controls `(runs, T, l)`, each held until the next
+      sample.
+    - `choice`: the `SmoothingChoice`; `coordinates`: the joint coordinates.
     """
     x = np.asarray(x, dtype=float)
     u = np.asarray(u, dtype=float)
-    samples = x.shape[1]
-    xs, xds, xdds = smoothing(x, dt)
-    m = smoothing.margin
-    q = np.asarray(_joint_positions(tuple(coordinates), jnp.asarray(xs)))
-    q = np.unwrap(q, axis=1) if q.size else q
-    return Prepared(xs, xds, xdds, u[:, m : samples - m], q, u, x, float(dt), m)
+    xs, xds, xdds = choice.smooth(x)
+    grid = choice.grid(x.shape[1])
+    step = choice.step
+    q = joint_positions(tuple(coordinates), xs)
+    return Prepared(
+        x=xs,
+        xd=xds,
+        xdd=xdds,
+        u=_block_means(u, grid - step // 2, step) if step > 1 else u[:, grid],
+        q=q,
+        u_hold=_block_means(u, grid, step) if step > 1 else u[:, grid],
+        x_measured=x[:, grid],
+        excluded=np.zeros(xs.shape[:2], dtype=bool),
+        dt=choice.interval,
+    )

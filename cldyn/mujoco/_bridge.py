@@ -107,6 +107,9 @@ class MujocoModel(eqx.Module):
     - `basis`: the plane of motion, rows `e1, e2` in world coordinates: world point `p` has planar
       coordinates `basis @ p`.
     - `include`: the passive effects included (see `from_mjcf`).
+    - `joint_limits`: per joint (in `joint_names`' order), `(low, high)` where MuJoCo limits it
+      (`limited`, `range`, less the limit's `margin`) with limits and constraints enabled, else `None`.
+      The cldyn model has no limits: `identify_recording` leaves out the samples at a limit.
     """
 
     system: ConstrainedLagrangian
@@ -118,6 +121,11 @@ class MujocoModel(eqx.Module):
     actuator_joints: tuple[str, ...] = eqx.field(static=True)
     basis: tuple[tuple[float, float, float], tuple[float, float, float]] = eqx.field(static=True)
     include: tuple[str, ...] = eqx.field(static=True)
+    joint_limits: tuple[tuple[float, float] | None, ...] = eqx.field(static=True, default=())
+
+    def limits(self) -> dict[str, tuple[float, float]]:
+        """`{joint name: (low, high)}` for the joints MuJoCo limits."""
+        return {n: r for n, r in zip(self.joint_names, self.joint_limits) if r is not None}
 
     def project(self, points) -> np.ndarray:
         """Planar coordinates of world points: shape `(..., 3) -> (..., 2)`."""
@@ -403,8 +411,9 @@ def from_mjcf(
     slides become a `JointInput` with gear `gear * gainprm[0]`. Joint coordinates equal MuJoCo's
     `qpos` (`qpos0` and joint `ref` included; hinge angles wrapped into `[-pi, pi)`).
 
-    Not modelled: joint limits, control and force clamping (`ctrllimited`, `forcelimited`), contacts
-    with the world, `frictionloss`. Outside the class, with an error that names the element: ball and
+    Not modelled: joint limits (their ranges are in `joint_limits`), control and force clamping
+    (`ctrllimited`, `forcelimited`: `record` stores the controls as applied), contacts with the world,
+    `frictionloss`. Outside the class, with an error that names the element: ball and
     free joints, non-parallel hinges, slides out of the plane, several joints in one body, tendons,
     equality constraints, contacts between moving bodies, non-motor actuators, gravity compensation,
     fluid forces.
@@ -500,6 +509,16 @@ def from_mjcf(
             stacklevel=2,
         )
 
+    limits_on = not flags & (mujoco.mjtDisableBit.mjDSBL_LIMIT | mujoco.mjtDisableBit.mjDSBL_CONSTRAINT)
+    joint_limits = tuple(
+        (
+            float(model.jnt_range[j, 0] + model.jnt_margin[j]),
+            float(model.jnt_range[j, 1] - model.jnt_margin[j]),
+        )
+        if limits_on and model.jnt_limited[j]
+        else None
+        for j in joint_ids
+    )
     system = ConstrainedLagrangian(
         mass=ConstantMass(jnp.asarray(build.mass)),
         potential=potential,
@@ -518,4 +537,5 @@ def from_mjcf(
         actuator_joints=tuple(joint_names[j] for j in actuated),
         basis=tuple(tuple(float(v) + 0.0 for v in row) for row in plane.basis),
         include=include,
+        joint_limits=joint_limits,
     )

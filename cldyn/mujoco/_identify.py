@@ -88,7 +88,9 @@ def identify_recording(
     The nominal model is built from `nominal` with the recording's keypoints (by name), so the
     recording and the model agree on what each coordinate is; joint effects are named by the MJCF's
     joints, gain errors by its actuators, keypoint effects by the keypoints (the names come from
-    `data.info`). Runs in the precision JAX is set to: turn on JAX's 64-bit mode first, as the
+    `data.info`). The joint limits of the nominal MJCF (`bridge.joint_limits`), which the cldyn model
+    does not express, are passed on: samples at a limit are left out. Runs in the precision JAX is
+    set to: turn on JAX's 64-bit mode first, as the
     command line does (in float32 the result carries a warning).
 
     **Arguments:**
@@ -133,6 +135,7 @@ def identify_recording(
                 f"the recording's {kind}s {list(recorded)} differ from the nominal model's "
                 f"{list(nominal_names)}"
             )
+    kwargs.setdefault("joint_limits", bridge.limits())
     result = identify(
         bridge.system,
         data,
