@@ -18,6 +18,8 @@ from ._constraint import AbstractConstraint, Stack
 _NOISE_FACTOR = 3.0
 # and below this fraction of the mechanism's size, whatever the noise: the precision of any measurement
 _RELATIVE_FLOOR = 1e-6
+# samples checked, at most (evenly spread): enough for RMS figures, and one compiled shape
+_MAX_SAMPLES = 4096
 
 
 class ConstraintViolation(ValueError):
@@ -35,7 +37,7 @@ def _leaves(constraint: AbstractConstraint) -> list[AbstractConstraint]:
 def _values_and_gradients(constraint, x):
     values = jax.vmap(constraint)(x)
     jacobians = jax.vmap(constraint.jacobian)(x[:: max(1, x.shape[0] // 64)])
-    return values, jnp.sqrt(jnp.mean(jnp.sum(jacobians**2, axis=-1), axis=0))
+    return values, jnp.sqrt(jnp.mean(jnp.sum(jacobians**2, axis=-1), axis=0)), jacobians[0]
 
 
 @dataclasses.dataclass(frozen=True)
@@ -113,7 +115,8 @@ def check_constraints(
     **Arguments:**
 
     - `constraint`: the model's constraints (`model.constraint`).
-    - `x`: measured keypoint positions, shape `(..., k)` (any number of runs and samples).
+    - `x`: measured keypoint positions, shape `(..., k)` (any number of runs and samples; at most
+      4096 of them, evenly spread, are checked).
     - `noise`: the standard deviation of the position noise (metres), e.g. from the data.
     - `level`: the values `Phi` holds in the model, shape `(n,)`, e.g. `Phi(joints.keypoints(q))` for
       any joint coordinates `q`; `None` to check constancy only (models that learn lengths).
@@ -132,20 +135,23 @@ def check_constraints(
     """
     x = np.asarray(x, dtype=float)
     flat = x.reshape(-1, x.shape[-1])
-    values, gradients = _values_and_gradients(constraint, jnp.asarray(flat))
-    values, gradients = np.asarray(values), np.asarray(gradients)
+    if flat.shape[0] > _MAX_SAMPLES:
+        flat = flat[np.linspace(0, flat.shape[0] - 1, _MAX_SAMPLES).astype(int)]
+    values, gradients, jacobian = (
+        np.asarray(a) for a in _values_and_gradients(constraint, jnp.asarray(flat))
+    )
     names = list(keypoint_names) if keypoint_names is not None else None
     labels = []
-    probe = jnp.asarray(flat[0])
+    start = 0
     for leaf in _leaves(constraint):
         rows = leaf.num_constraints
-        jac = np.asarray(leaf.jacobian(probe))
         text = eqx.tree_pformat(leaf, short_arrays=True, width=200).replace("\n", " ")
         for r in range(rows):
-            touched = sorted({int(c) // 2 for c in np.flatnonzero(np.abs(jac[r]) > 0)})
+            touched = sorted({int(c) // 2 for c in np.flatnonzero(np.abs(jacobian[start + r]) > 0)})
             on = [repr(names[i]) if names is not None and i < len(names) else str(i) for i in touched]
             row = f" row {r}" if rows > 1 else ""
             labels.append(f"{text}{row} (keypoints {', '.join(on)})")
+        start += rows
     measured = values.mean(axis=0)
     reference = measured if level is None else np.asarray(level, dtype=float).reshape(-1)
     if reference.shape != measured.shape:

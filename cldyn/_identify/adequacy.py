@@ -4,6 +4,7 @@ unexaminable. identify reports these instead of silently finding nothing."""
 
 import math
 
+import equinox as eqx
 import jax.numpy as jnp
 import numpy as np
 
@@ -16,10 +17,15 @@ _JOINT_NOISE_FACTOR = 10.0  # a joint "moves" when its range exceeds this many t
 _CONTROL_RTOL = 1e-9
 
 
+@eqx.filter_jit
+def _gradient_norms(coordinates, x):
+    return jnp.stack([jnp.linalg.norm(c.gradient(x)) for c in coordinates]) if coordinates else jnp.zeros(0)
+
+
 def joint_noise(context: Context, x0: np.ndarray, noise: float) -> list[float]:
     """The noise of each joint coordinate: the position noise times `|grad q|`."""
-    point = jnp.asarray(x0)
-    return [noise * float(jnp.linalg.norm(c.gradient(point))) for c in context.coordinates]
+    norms = np.asarray(_gradient_norms(tuple(context.coordinates), jnp.asarray(x0)))
+    return [noise * float(n) for n in norms]
 
 
 def _still_joints(context: Context, q: np.ndarray, x0: np.ndarray, noise: float, used: np.ndarray) -> dict:

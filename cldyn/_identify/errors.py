@@ -25,6 +25,7 @@ def _rollout_batch(
     dt: float,
     measured,
     window: int,
+    valid,
     *,
     max_steps: int = 20,
     rtol: float = 1e-6,
@@ -34,15 +35,18 @@ def _rollout_batch(
 
     The initial state is estimated with the model itself: starting from the smoothed state, the
     positions and velocities are adjusted (Gauss-Newton) so that the first `window` samples of
-    the rollout match the measurement. This removes most of the measurement noise from the initial
-    velocity, which otherwise dominates the rollout error of noisy data, for every model alike.
+    the rollout match the measurement (those of them that are `valid`, `(runs, window + 1)`: a run
+    that starts at a joint limit is not fitted). This removes most of the measurement noise from the
+    initial velocity, which otherwise dominates the rollout error of noisy data, for every model alike.
 
     The Gauss-Newton Jacobian is taken by forward differences: every iteration rolls out each run
     and its `2k` perturbed initial states as one batch of plain (undifferentiated) solves, and the
     unperturbed rollout of the last iteration is the result. One solver loop to trace and compile,
     a fraction of what differentiating through the solver costs; the minimiser is the same.
     Velocity changes across the constraints are projected away by the rollout, so the
-    least-squares problem is rank-deficient: the steps are minimum-norm (SVD).
+    least-squares problem is rank-deficient: the steps are minimum-norm (SVD). A run whose rollouts
+    turn non-finite (a model that cannot follow it, say) stops where it is, unconverged; its rollout
+    may then be non-finite, which the caller counts as a divergence.
     """
     runs, k = x0.shape
     n = 2 * k
@@ -50,49 +54,59 @@ def _rollout_batch(
     # between the truncation error of the differences and the projection's Newton tolerance
     relative_step = jnp.cbrt(jnp.finfo(start.dtype).eps)
     target = measured[:, : window + 1].reshape(runs, -1)
+    # per residual row, sample by sample as `target` lays them out
+    weight = jnp.repeat(valid[:, : window + 1].astype(measured.dtype), measured.shape[-1], axis=1)
     # one rollout after another: batching the solver's nested loops costs more tracing and
     # compilation than the few hundred short rollouts of a fit take to run
     roll = lambda ys, controls: jax.lax.map(
-        lambda a: rollout(model, a[0][:k], a[0][k:], a[1], dt).x, (ys, controls)
+        lambda a: rollout(model, a[0][:k], a[0][k:], a[1], dt, throw=False).x, (ys, controls)
     )
     probe_us = jnp.repeat(us, n + 1, axis=0)
 
     def cond(carry):
-        _, count, done, _ = carry
+        _, count, done, _, _ = carry
         return (count < max_steps) & ~jnp.all(done)
 
     def body(carry):
-        y, count, done, _ = carry
+        y, count, done, converged, _ = carry
         h = relative_step * (1 + jnp.abs(y))  # (runs, 2k)
         probes = y[:, None, :] + jnp.concatenate([jnp.zeros((runs, 1, n), y.dtype), jax.vmap(jnp.diag)(h)], 1)
         xs = roll(probes.reshape(-1, n), probe_us).reshape((runs, n + 1) + measured.shape[1:])
         window_xs = xs[:, :, : window + 1].reshape(runs, n + 1, -1)
-        jac = jnp.swapaxes((window_xs[:, 1:] - window_xs[:, :1]) / h[:, :, None], 1, 2)
-        delta = jax.vmap(lambda a, b: jnp.linalg.lstsq(a, b, rcond=1e-6)[0])(jac, window_xs[:, 0] - target)
+        jac = jnp.swapaxes((window_xs[:, 1:] - window_xs[:, :1]) / h[:, :, None], 1, 2) * weight[:, :, None]
+        delta = jax.vmap(lambda a, b: jnp.linalg.lstsq(a, b, rcond=1e-6)[0])(
+            jac, (window_xs[:, 0] - target) * weight
+        )
         small = jnp.linalg.norm(delta, axis=1) <= atol + rtol * jnp.linalg.norm(y, axis=1)
-        # a converged run keeps the state its rollout came from; so does every run on the last pass
-        keep = done | small | (count + 1 >= max_steps)
-        return jnp.where(keep[:, None], y, y - delta), count + 1, done | small, xs[:, 0]
+        failed = ~jnp.all(jnp.isfinite(delta), axis=1)
+        # a converged run keeps the state its rollout came from; so does a failed one, and every run
+        # on the last pass
+        keep = done | small | failed | (count + 1 >= max_steps)
+        converged = converged | (small & ~done)
+        return jnp.where(keep[:, None], y, y - delta), count + 1, done | small | failed, converged, xs[:, 0]
 
     empty = jnp.zeros((runs,) + measured.shape[1:], measured.dtype)
-    _, _, converged, xs = jax.lax.while_loop(cond, body, (start, 0, jnp.zeros(runs, bool), empty))
+    none = jnp.zeros(runs, bool)
+    _, _, _, converged, xs = jax.lax.while_loop(cond, body, (start, 0, none, none, empty))
     return xs, converged
 
 
 def rollout_errors(
     model: ConstrainedLagrangian, data: Prepared, horizon: float, window: float = 0.2
-) -> tuple[np.ndarray, np.ndarray, int]:
+) -> tuple[np.ndarray, np.ndarray, int, int]:
     """Keypoint position error over time of rollouts from the first kept state of every run, with the
     controls held between kept samples (`data.u_hold`). A run's error ends before its first excluded
-    sample (a joint at its limit, which the model does not know): NaN from there on.
+    sample (a joint at its limit, which the model does not know): NaN from there on. A rollout that
+    turns non-finite before that has an infinite error.
 
-    **Returns:** `(ts, error (runs, T, keypoints), number of unconverged initial-state fits)`.
+    **Returns:** `(ts, error (runs, T, keypoints), unconverged initial-state fits, diverged rollouts)`.
     """
     steps = min(int(round(horizon / data.dt)), data.x.shape[1] - 1)
     ts = np.arange(steps + 1) * data.dt
     us = data.u_hold[:, : steps + 1]
     measured = data.x_measured[:, : steps + 1]
     samples = max(2, min(steps, int(round(window / data.dt))))
+    reached = np.cumsum(data.excluded[:, : steps + 1], axis=1) > 0
     xs, converged = _rollout_batch(
         model,
         jnp.asarray(data.x[:, 0]),
@@ -101,11 +115,14 @@ def rollout_errors(
         data.dt,
         jnp.asarray(measured),
         samples,
+        jnp.asarray(~reached),
     )
     error = np.linalg.norm((np.asarray(xs) - measured).reshape(xs.shape[0], steps + 1, -1, 2), axis=-1)
-    reached = np.cumsum(data.excluded[:, : steps + 1], axis=1) > 0
+    error = np.where(np.isfinite(error), error, np.inf)
     error = np.where(reached[..., None], np.nan, error)
-    return ts, error, int(np.sum(~np.asarray(converged)))
+    diverged = int(np.sum(np.any(np.isinf(error), axis=(1, 2))))
+    unconverged = int(np.sum(~np.asarray(converged) & ~reached[:, 0]))
+    return ts, error, unconverged, diverged
 
 
 def errors(
@@ -127,7 +144,7 @@ def errors(
     if kept is None:
         kept = np.ones(error.shape[:2], dtype=bool)
     accel_rmse = float(np.sqrt(np.sum(error[kept] ** 2) / max(error[kept].size, 1)))
-    ts, error, unconverged = rollout_errors(model, data, horizon)
-    valid = np.isfinite(error)
+    ts, error, unconverged, diverged = rollout_errors(model, data, horizon)
+    valid = ~np.isnan(error)
     rollout_rmse = float(np.sqrt(np.mean(error[valid] ** 2))) if valid.any() else float("nan")
-    return Errors(accel_rmse, rollout_rmse, float(ts[-1]), unconverged), ts, error
+    return Errors(accel_rmse, rollout_rmse, float(ts[-1]), unconverged, diverged), ts, error

@@ -5,6 +5,7 @@ import time
 import warnings
 from collections.abc import Mapping, Sequence
 
+import equinox as eqx
 import jax.numpy as jnp
 import numpy as np
 import optimistix as optx
@@ -58,13 +59,16 @@ def _check(model, data, coordinates, joints, runs_needed: int = 4) -> None:
         )
 
 
+@eqx.filter_jit
+def _level(constraint, joints):
+    """The values the model holds its constraints at: `Phi(F(q))` for any `q` (zero, say)."""
+    return constraint(joints.keypoints(jnp.zeros(joints.num_joints)))
+
+
 def _check_kinematics(model, joints, x, noise: float, keypoint_names) -> None:
     """Refuse data that break the nominal model's constraints by more than the noise: nothing can be
     attributed to missing physics when the geometry itself is wrong."""
-    if joints is not None:
-        level = model.constraint(joints.keypoints(jnp.zeros(joints.num_joints, dtype=jnp.asarray(x).dtype)))
-    else:
-        level = None
+    level = None if joints is None else np.asarray(_level(model.constraint, joints))
     check_constraints(
         model.constraint, x, noise=noise, level=level, keypoint_names=keypoint_names, what="the nominal model"
     )
@@ -249,7 +253,7 @@ def identify(
         )
         before, ts, error_before = errors(model, held_data, horizon, tests, kept[held])
         before_excluded = prepared.excluded
-        problems += _unconverged("nominal", before.unconverged)
+        problems += _unconverged("nominal", before)
         meter = progress_meter.update(meter, 1, {"rollout_rmse_1s": before.rollout_rmse_1s})
         # the candidates' features do not change from round to round: evaluate them once, on every run
         features = tests.weak(*evaluate(Features(context, joints, all_candidates), *arrays))
@@ -323,7 +327,7 @@ def identify(
                 break
             if solved != optx.RESULTS.successful:
                 problems.append(f"the refit of round {round_index} stopped early: {optx.RESULTS[solved]}")
-            problems += _unconverged("identified", trial_errors.unconverged)
+            problems += _unconverged("identified", trial_errors)
             for d in new:
                 own = list(result.groups.columns[problem.candidates.index(d.candidate)])
                 feature = problem.f_held[..., own] @ np.asarray(d.theta)
@@ -406,7 +410,13 @@ def _unrepresentable_note(detections, outside: np.ndarray, tests) -> str:
     )
 
 
-def _unconverged(which: str, count: int) -> list[str]:
-    if not count:
-        return []
-    return [f"the initial-state fit of {count} held-out rollout(s) of the {which} model did not converge"]
+def _unconverged(which: str, errors) -> list[str]:
+    out = []
+    if errors.unconverged:
+        out.append(
+            f"the initial-state fit of {errors.unconverged} held-out rollout(s) of the {which} model did not "
+            "converge"
+        )
+    if errors.diverged:
+        out.append(f"{errors.diverged} held-out rollout(s) of the {which} model diverged (infinite error)")
+    return out

@@ -121,12 +121,15 @@ class Errors:
       swamp the comparison.
     - `horizon`: the rollout length in seconds.
     - `unconverged`: runs whose initial-state fit did not converge (their rollouts still count).
+    - `diverged`: runs whose rollout turned non-finite (their error is infinite, and so is
+      `rollout_rmse_1s`).
     """
 
     accel_rmse: float
     rollout_rmse_1s: float
     horizon: float
     unconverged: int = 0
+    diverged: int = 0
 
     def to_dict(self) -> dict[str, float]:
         """The report entry."""
