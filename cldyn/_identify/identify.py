@@ -310,9 +310,34 @@ def identify(
                 kept = ~tests.support(prepared.excluded)
                 fit_data, held_data = prepared.take(fit_runs), prepared.take(held)
                 current_errors, _, error_after = errors(current, held_data, horizon, tests, kept[held])
-            trial = augment(current, new, context)
-            trial, solved = refit(trial, fit_data, joints, weights, tests, kept=kept[fit_runs])
-            trial_errors, _, trial_curve = errors(trial, held_data, horizon, tests, kept[held])
+
+            def trial_of(detections):
+                """The model with `detections` added and refitted, and its held-out errors."""
+                augmented = augment(current, detections, context)
+                augmented, solved = refit(augmented, fit_data, joints, weights, tests, kept=kept[fit_runs])
+                found, _, curve = errors(augmented, held_data, horizon, tests, kept[held])
+                return augmented, solved, found, curve
+
+            trial, solved, trial_errors, trial_curve = trial_of(new)
+            # each detection must lower the held-out rollout error: against the others of its round alone
+            worse = []
+            for d in new if len(new) > 1 else ():
+                without = trial_of([o for o in new if o is not d])[2]
+                if not trial_errors.rollout_rmse_1s < without.rollout_rmse_1s:
+                    worse.append(d)
+                    problems.append(
+                        f"round {round_index}: {d.candidate.label} does not lower the held-out rollout error "
+                        f"({without.rollout_rmse_1s:.4g} m without it, {trial_errors.rollout_rmse_1s:.4g} m "
+                        "with it): not reported as found"
+                    )
+            if worse:
+                rejected += [
+                    dataclasses.replace(d, detected=False, failed=d.failed + ("rollout",)) for d in worse
+                ]
+                new = [d for d in new if all(d is not w for w in worse)]
+                if not new:
+                    break
+                trial, solved, trial_errors, trial_curve = trial_of(new)
             if not trial_errors.rollout_rmse_1s < current_errors.rollout_rmse_1s:
                 labels = ", ".join(d.candidate.label for d in new)
                 problems.append(
