@@ -145,9 +145,9 @@ def identify(
        held-out runs check that each effect improves prediction. An effect is detected only when all
        `Criteria` hold. Candidates that explain the data about as well are reported as alternatives.
     3. **Augment and refit.** Detected effects become cldyn terms (each effect adds its own); the
-       potential, the dissipative terms and the armature are refitted by Levenberg-Marquardt. A round's
-       detections stand only if the refitted model's held-out rollout error is lower than before
-       (else they are rejected, with a warning); the loop repeats until nothing passes.
+       potential, the dissipative terms and the armature are refitted by Levenberg-Marquardt. A
+       detection stands only if the refitted model's held-out rollout error is lower with it than
+       without it (else it is rejected, with a warning); the loop repeats until nothing passes.
     4. **Report.** Errors before and after on held-out runs; the settings chosen, the adequacy of
        the data and the wall time.
 

@@ -36,8 +36,8 @@ class Criteria(eqx.Module):
     - `min_samples_per_timescale`: samples per time scale of the motion, at least (motion faster than
       this is not resolved by the sampling).
 
-    Whatever the criteria, a round's detections are kept only where the model with them predicts the
-    held-out runs better: a lower held-out rollout error.
+    Whatever the criteria, a detection stands only where the model with it predicts the held-out runs
+    better than without it: a lower held-out rollout error.
 
     !!! example
 
