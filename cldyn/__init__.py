@@ -160,6 +160,11 @@ from ._stabilisation import (
     NoStabilisation as NoStabilisation,
     Projection as Projection,
 )
+from ._steps import (
+    AbstractStepLoop as AbstractStepLoop,
+    CompiledLoop as CompiledLoop,
+    HostLoop as HostLoop,
+)
 from ._system import (
     AbstractDynamics as AbstractDynamics,
     ConstrainedLagrangian as ConstrainedLagrangian,

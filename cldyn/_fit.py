@@ -1,7 +1,8 @@
 """`fit`: the one training loop, for models of keypoint states and (through keyvision) of images.
 
-Steps run in compiled chunks (a `lax.while_loop` between two log, validation or checkpoint points),
-so the host synchronises with the device once per chunk, not once per step. The batch is sharded
+Steps run in chunks between two log, validation or checkpoint points (`cldyn._steps`: one compiled
+`lax.while_loop`, or compiled steps dispatched asynchronously), so the host synchronises with the
+device once per chunk, not once per step. The batch is sharded
 over all local devices (`jax.sharding`, parameters replicated). Checkpoints (`cldyn._checkpoint`)
 make an interrupted fit resumable with bitwise-equal results.
 """
@@ -24,13 +25,14 @@ import jax.numpy as jnp
 import numpy as np
 import optax
 from jax.sharding import Mesh, NamedSharding, PartitionSpec
-from jaxtyping import Array, PRNGKeyArray, PyTree
+from jaxtyping import PRNGKeyArray, PyTree
 
 from ._batching import AbstractBatching, Runs, num_runs
 from ._checkpoint import CheckpointError, load_checkpoint, save_checkpoint, serialise
 from ._custom_types import Scalar
 from ._misc import atomic_write, check_positive
 from ._progress import AbstractProgressMeter, NoProgressMeter
+from ._steps import AbstractStepLoop, CompiledLoop, optax_promotion
 
 _HISTORY_SCHEMA = "cldyn.FitHistory/1"
 # Settings that must agree for a checkpoint to be resumed: together they fix every batch and update.
@@ -112,11 +114,6 @@ def _cast(tree, dtype):
     return jax.tree.map(lambda a: a.astype(dtype) if eqx.is_inexact_array(a) else a, tree)
 
 
-def _all_finite(tree) -> Array:
-    leaves = [jnp.all(jnp.isfinite(a)) for a in jax.tree.leaves(eqx.filter(tree, eqx.is_inexact_array))]
-    return jnp.all(jnp.stack(leaves)) if leaves else jnp.array(True)
-
-
 def _key_data(key) -> list[int]:
     if jnp.issubdtype(key.dtype, jax.dtypes.prng_key):
         key = jax.random.key_data(key)
@@ -173,12 +170,6 @@ def _write_history(path: pathlib.Path, settings: dict, history: list[dict]) -> N
     atomic_write(path, buffer.getvalue())
 
 
-def _optax_promotion():
-    # optax mixes Python floats with integer step counts (Adam's `decay**count`), which JAX's strict
-    # dtype promotion refuses; the optimiser alone is traced with the standard rules
-    return jax.numpy_dtype_promotion("standard")
-
-
 def _next(step: int, every: int) -> int:
     return (step // every + 1) * every
 
@@ -186,60 +177,6 @@ def _next(step: int, every: int) -> int:
 def _put(tree, sharding):
     arrays, rest = eqx.partition(tree, eqx.is_array)
     return eqx.combine(jax.device_put(arrays, sharding), rest)
-
-
-# -- the compiled chunk of steps -------------------------------------------------------------------
-
-
-@eqx.filter_jit
-def _train_chunk(
-    params, opt_state, static, data, key, start, count, *, loss, optimizer, batching, length, sharding
-):
-    """Up to `count` optimiser steps from step `start`; stops before the first non-finite step.
-
-    **Returns:** `(params, opt_state, losses, done, bad)`: the state after the `done` good steps,
-    their losses in `losses[:done]` (and, when `bad`, the failed step's loss in `losses[done]`).
-    """
-
-    def objective(p, batch):
-        return loss(eqx.combine(p, static), batch)
-
-    def draw(i):
-        batch = batching.draw(data, jax.random.fold_in(key, start + i))
-        return batch if sharding is None else jax.lax.with_sharding_constraint(batch, sharding)
-
-    dtype = jax.eval_shape(lambda p: objective(p, draw(0)), params).dtype
-    losses = jnp.full((length,), jnp.nan, dtype)
-
-    def body(carry):
-        i, params, opt_state, losses, _ = carry
-        value, grads = eqx.filter_value_and_grad(objective)(params, draw(i))
-        with _optax_promotion():
-            updates, new_opt_state = optimizer.update(grads, opt_state, params)
-        new_params = eqx.apply_updates(params, updates)
-        finite = jnp.isfinite(value) & _all_finite(grads)
-        # a failed step changes nothing: the loop stops with the state before it
-
-        def keep(new, old):
-            return jax.tree.map(lambda a, b: jnp.where(finite, a, b), new, old)
-
-        return (
-            i + finite.astype(i.dtype),
-            keep(new_params, params),
-            keep(new_opt_state, opt_state),
-            losses.at[i].set(value),
-            ~finite,
-        )
-
-    def more(carry):
-        i, *_, bad = carry
-        return (i < count) & ~bad
-
-    i = jnp.zeros((), count.dtype)
-    i, params, opt_state, losses, bad = jax.lax.while_loop(
-        more, body, (i, params, opt_state, losses, jnp.array(False))
-    )
-    return params, opt_state, losses, i, bad
 
 
 @eqx.filter_jit
@@ -273,13 +210,14 @@ def fit(
     progress_meter: AbstractProgressMeter = NoProgressMeter(),
     callback: Callable[[int, Any], dict | None] | None = None,
     devices: Sequence[jax.Device] | None = None,
+    loop: AbstractStepLoop = CompiledLoop(),
 ) -> FitResult:
     """Fit the parameters of a model to data by stochastic gradient descent.
 
     Every step draws a batch (`batching`, with the key `jax.random.fold_in(key, step)`, so a resumed
     fit draws the same batches), evaluates `loss(model, batch)` and applies one optimiser update to
-    the trainable parameters. Steps run in compiled chunks between log, validation and checkpoint
-    points: the host waits for the device once per chunk. The batch is sharded over `devices` (a 1-D
+    the trainable parameters. Steps run in chunks between log, validation and checkpoint points
+    (`loop`): the host waits for the device once per chunk. The batch is sharded over `devices` (a 1-D
     mesh, parameters and data replicated); on one device nothing is sharded.
 
     **Arguments:**
@@ -324,6 +262,9 @@ def fit(
       added to the record (e.g. a diagnostic measured on the current model).
     - `devices`: the devices to shard the batch over; all local devices by default. The batch size
       must be a multiple of their number.
+    - `loop`: how the steps between two log, validation or checkpoint points run:
+      `cldyn.CompiledLoop()` (one compiled loop, the default) or `cldyn.HostLoop()` (one compiled
+      step at a time; faster for convolutional networks on CPU).
 
     **Returns:** a `FitResult` with the trained model, the history and the settings.
 
@@ -391,7 +332,7 @@ def fit(
 
     model, data, validation = _cast(model, dtype), _cast(data, dtype), _cast(validation, dtype)
     params, static = _partition(model, trainable)
-    with _optax_promotion():
+    with optax_promotion():
         opt_state = optimizer.init(params)
     settings = {
         "stage": stage,
@@ -466,14 +407,14 @@ def fit(
             stop = min(
                 _next(step, log_every), _next(step, validate_every), _next(step, checkpoint_every), steps
             )
-            new_params, new_opt_state, values, done, bad = _train_chunk(
+            new_params, new_opt_state, values, done, bad = loop.run(
                 params,
                 opt_state,
                 static,
                 data,
                 key,
-                jnp.asarray(step),
-                jnp.asarray(stop - step),
+                step,
+                stop - step,
                 loss=loss,
                 optimizer=optimizer,
                 batching=batching,

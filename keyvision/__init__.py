@@ -2,6 +2,11 @@
 
 import importlib.metadata
 
+from ._augment import (
+    Augment as Augment,
+    restore_keypoints as restore_keypoints,
+    transform_images as transform_images,
+)
 from ._data import (
     Frames as Frames,
     ImageSequences as ImageSequences,

@@ -14,7 +14,7 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
-from jaxtyping import Array, Float, Shaped, UInt8
+from jaxtyping import Array, Float, Int, Shaped, UInt8
 
 from cldyn._misc import atomic_save
 
@@ -293,6 +293,8 @@ class ImageSequences(eqx.Module):
     - `u`: `(runs, T, l)` controls held from each frame to the next, `(runs, l)` (one per run), or
       `None` for none.
     - `dt`: the time between frames in seconds.
+    - `transforms`: `(runs, T)` integer indices of the dihedral transform under which the estimator
+      sees each frame (`keyvision.Augment` draws them for a batch), or `None`: every frame as it is.
 
     !!! example
 
@@ -305,8 +307,9 @@ class ImageSequences(eqx.Module):
     frames: Shaped[Array | np.ndarray, "runs T H W C"]
     u: Float[Array | np.ndarray, "runs T l"]
     dt: float = eqx.field(static=True)
+    transforms: Int[Array | np.ndarray, "runs T"] | None = None
 
-    def __init__(self, frames, u=None, dt: float = 1.0):
+    def __init__(self, frames, u=None, dt: float = 1.0, transforms=None):
         frames = frames if isinstance(frames, jax.Array) else np.asarray(frames)
         if frames.ndim != 5:
             raise ValueError(f"ImageSequences: frames must have shape (runs, T, H, W, C), got {frames.shape}")
@@ -326,9 +329,14 @@ class ImageSequences(eqx.Module):
         dt = float(dt)
         if not (np.isfinite(dt) and dt > 0):
             raise ValueError(f"ImageSequences: dt must be a positive number, got {dt}")
+        if transforms is not None and jnp.shape(transforms) != (runs, samples):
+            raise ValueError(
+                f"ImageSequences: transforms must have shape ({runs}, {samples}), got {jnp.shape(transforms)}"
+            )
         self.frames = frames
         self.u = u
         self.dt = dt
+        self.transforms = transforms
 
     @classmethod
     def from_frames(cls, frames: Frames) -> "ImageSequences":

@@ -13,6 +13,7 @@ from jaxtyping import Array
 
 from cldyn import AbstractLoss, Sequences
 
+from ._augment import transform_images
 from ._data import ImageSequences
 from ._estimator import KeypointEstimator
 from ._keypoints import gaussian_maps, spatial_softmax
@@ -45,7 +46,7 @@ class Reconstruction(AbstractLoss):
 
     def __call__(self, model: KeyCLD, batch: ImageSequences) -> Array:
         images = _images(model, batch)
-        reconstructed = model.decode(model.encode(images))
+        reconstructed = model.decode(model.encode(images, batch.transforms))
         return jnp.mean((reconstructed - images) ** 2)
 
 
@@ -76,7 +77,7 @@ class KeypointDynamics(AbstractLoss):
             raise TypeError(f"KeypointDynamics wraps a cldyn loss, got {type(self.loss).__name__}")
 
     def __call__(self, model: KeyCLD, batch: ImageSequences) -> Array:
-        x = model.encode(_images(model, batch))
+        x = model.encode(_images(model, batch), batch.transforms)
         keypoints = Sequences(x, jnp.asarray(batch.u).astype(x.dtype), batch.dt)
         return self.loss(model.dynamics, keypoints)
 
@@ -119,6 +120,8 @@ class HeatmapRegulariser(AbstractLoss):
                 f"{type(model.estimator).__name__}"
             )
         images = _images(model, batch)
+        if batch.transforms is not None:  # the heatmaps the estimator draws for what it sees
+            images = transform_images(images, jnp.asarray(batch.transforms))
         images = images.reshape(-1, *images.shape[-3:])
         return jnp.mean(jax.vmap(lambda image: self._one(model.estimator, image))(images))
 

@@ -3,10 +3,11 @@
 import equinox as eqx
 import jax
 import jax.numpy as jnp
-from jaxtyping import Array, Float
+from jaxtyping import Array, Float, Int
 
 from cldyn import AbstractDynamics
 
+from ._augment import restore_keypoints, transform_images
 from ._estimator import AbstractKeypointEstimator
 from ._renderer import AbstractRenderer
 
@@ -80,19 +81,29 @@ class KeyCLD(eqx.Module):
         """The side of the square images in pixels."""
         return self.estimator.image_size
 
-    def encode(self, images: Float[Array, "*batch H W C"]) -> Float[Array, "*batch k"]:
+    def encode(
+        self, images: Float[Array, "*batch H W C"], transforms: Int[Array, "*batch"] | None = None
+    ) -> Float[Array, "*batch k"]:
         """The keypoint state `x` (`k = 2K`) of each image (values in `[0, 1]`), any leading axes.
 
         **Arguments:**
 
         - `images`: `(..., H, W, C)`, e.g. the `T` frames of a run.
+        - `transforms`: `(...)` dihedral transform indices (`keyvision.Augment`), or `None`. Each
+          image is shown to the estimator transformed, and its keypoints are mapped back to the
+          image as it was: an equivariant estimator gives the same keypoints either way.
 
         **Returns:** `(..., 2K)`: the estimator's keypoints, flattened `[x1, y1, x2, y2, ...]`.
         """
         images = jnp.asarray(images)
         lead = images.shape[:-3]
+        if transforms is not None:
+            transforms = jnp.asarray(transforms)
+            images = transform_images(images, transforms)
         flat = images.reshape(-1, *images.shape[-3:])
-        keypoints = jax.vmap(self.estimator)(flat)
+        keypoints = jax.vmap(self.estimator)(flat).reshape(*lead, self.num_keypoints, 2)
+        if transforms is not None:
+            keypoints = restore_keypoints(keypoints, transforms)
         return keypoints.reshape(*lead, 2 * self.num_keypoints)
 
     def decode(self, x: Float[Array, "*batch k"]) -> Float[Array, "*batch H W 3"]:

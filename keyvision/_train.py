@@ -22,6 +22,7 @@ from jaxtyping import Array, PRNGKeyArray
 import cldyn
 from cldyn._misc import atomic_write, check_positive
 
+from ._augment import Augment
 from ._data import ImageSequences, as_images
 from ._loss import HeatmapRegulariser, KeypointDynamics, Reconstruction
 from ._model import KeyCLD, parameter_dtype
@@ -50,8 +51,16 @@ class Schedule:
     - `dynamics_weight`: the weight `lambda` of the dynamics loss in stage (c).
     - `heatmap_weight`: the weight of the heatmap regulariser (0 leaves it out, as the FC estimator
       needs).
-    - `learning_rate`: Adam's learning rate for the networks (after element-wise gradient clipping
-      at 5); `dynamics_learning_rate` for stage (b).
+    - `augment`: show the estimator every frame of stages (a) and (c) under a random dihedral
+      transform (`keyvision.Augment`), its keypoints mapped back: trains an equivariant estimator.
+    - `learning_rate`: Adam's peak learning rate for the networks in stage (a) (after element-wise
+      gradient clipping at 5); `dynamics_learning_rate` for stage (b), `joint_learning_rate` for
+      stage (c).
+    - `warmup_steps`, `final_learning_rate`: every stage starts a fresh Adam, so its learning rate
+      rises linearly from 0 over `warmup_steps` (at most a tenth of the stage) and then decays along
+      a cosine to `final_learning_rate` times its peak at the stage's last step. Without the warm-up,
+      Adam's first steps (each about the learning rate in size, whatever the gradient) undo much of
+      what the previous stage learnt.
     - `log_every`, `checkpoint_every`: as in `cldyn.fit`, for every stage.
 
     !!! example
@@ -71,8 +80,12 @@ class Schedule:
     dynamics_loss: cldyn.AbstractLoss = cldyn.Collocation()
     dynamics_weight: float = 1e-3
     heatmap_weight: float = 0.1
+    augment: bool = False
     learning_rate: float = 1e-3
     dynamics_learning_rate: float = 1e-3
+    joint_learning_rate: float = 3e-4
+    warmup_steps: int = 100
+    final_learning_rate: float = 0.1
     log_every: int = 50
     checkpoint_every: int = 500
 
@@ -82,10 +95,18 @@ class Schedule:
         for name in ("autoencoder_batch", "dynamics_batch", "joint_batch", "window", "log_every",
                      "checkpoint_every"):
             check_positive(f"Schedule: {name}", getattr(self, name), integer=True)
-        for name in ("learning_rate", "dynamics_learning_rate"):
+        for name in ("learning_rate", "dynamics_learning_rate", "joint_learning_rate", "final_learning_rate"):
             check_positive(f"Schedule: {name}", getattr(self, name))
+        check_positive("Schedule: warmup_steps", self.warmup_steps, integer=True, allow_zero=True)
+        if self.final_learning_rate > 1:
+            raise ValueError(
+                "Schedule: final_learning_rate is a fraction of the peak, at most 1; got "
+                f"{self.final_learning_rate}"
+            )
         for name in ("dynamics_weight", "heatmap_weight"):
             check_positive(f"Schedule: {name}", getattr(self, name), allow_zero=True)
+        if not isinstance(self.augment, bool):
+            raise TypeError(f"Schedule: augment must be True or False, got {self.augment!r}")
         if not isinstance(self.dynamics_loss, cldyn.AbstractLoss):
             raise TypeError(f"Schedule: dynamics_loss must be a cldyn loss, got {self.dynamics_loss!r}")
 
@@ -151,8 +172,12 @@ def _networks_only(model: KeyCLD):
     return eqx.tree_at(lambda m: m.dynamics, spec, replace=False)
 
 
-def _adam(learning_rate: float) -> optax.GradientTransformation:
-    return optax.chain(optax.clip(5.0), optax.adam(learning_rate))
+def _adam(schedule: Schedule, peak: float, steps: int) -> optax.GradientTransformation:
+    warmup = min(schedule.warmup_steps, steps // 10)
+    rate = optax.warmup_cosine_decay_schedule(
+        0.0, peak, warmup, max(steps, warmup + 1), end_value=peak * schedule.final_learning_rate
+    )
+    return optax.chain(optax.clip(5.0), optax.adam(rate))
 
 
 def _key_data(key) -> list[int]:
@@ -224,6 +249,9 @@ def train(
         out.mkdir(parents=True, exist_ok=True)
         record = {"schema": _SCHEMA, "key": _key_data(key), "schedule": schedule.describe()}
         atomic_write(out / "train.json", json.dumps(record, indent=1))
+    # XLA's CPU backend runs convolutions inside a compiled loop about ten times slower than outside
+    # one: the stages with networks of images dispatch one compiled step at a time
+    images_loop = cldyn.HostLoop()
     common = {
         "out": out,
         "resume": resume,
@@ -238,11 +266,16 @@ def train(
         images_loss = images_loss + schedule.heatmap_weight * HeatmapRegulariser()
     stages = {}
 
+    def frames_batching(batch_size: int, length: int) -> cldyn.AbstractBatching:
+        windows = cldyn.Windows(batch_size, length)
+        return Augment(windows) if schedule.augment else windows
+
     if schedule.autoencoder_steps:
         stages["autoencoder"] = cldyn.fit(
             model, data, loss=images_loss, steps=schedule.autoencoder_steps, key=keys["autoencoder"],
-            optimizer=_adam(schedule.learning_rate), batching=cldyn.Windows(schedule.autoencoder_batch, 1),
-            validation=validation, trainable=_networks_only, stage="autoencoder", **common,
+            optimizer=_adam(schedule, schedule.learning_rate, schedule.autoencoder_steps),
+            batching=frames_batching(schedule.autoencoder_batch, 1),
+            validation=validation, trainable=_networks_only, stage="autoencoder", loop=images_loop, **common,
         )
         model = stages["autoencoder"].model
 
@@ -250,7 +283,8 @@ def train(
         keypoints = encode_sequences(model, data)
         stages["dynamics"] = cldyn.fit(
             model.dynamics, keypoints, loss=schedule.dynamics_loss, steps=schedule.dynamics_steps,
-            key=keys["dynamics"], optimizer=_adam(schedule.dynamics_learning_rate),
+            key=keys["dynamics"],
+            optimizer=_adam(schedule, schedule.dynamics_learning_rate, schedule.dynamics_steps),
             batching=cldyn.Runs(min(schedule.dynamics_batch, keypoints.num_runs)),
             validation=None if validation is None else encode_sequences(model, validation),
             stage="dynamics", **common,
@@ -261,9 +295,9 @@ def train(
         loss = images_loss + schedule.dynamics_weight * KeypointDynamics(schedule.dynamics_loss)
         stages["joint"] = cldyn.fit(
             model, data, loss=loss, steps=schedule.joint_steps, key=keys["joint"],
-            optimizer=_adam(schedule.learning_rate),
-            batching=cldyn.Windows(schedule.joint_batch, schedule.window),
-            validation=validation, stage="joint", **common,
+            optimizer=_adam(schedule, schedule.joint_learning_rate, schedule.joint_steps),
+            batching=frames_batching(schedule.joint_batch, schedule.window),
+            validation=validation, stage="joint", loop=images_loop, **common,
         )
         model = stages["joint"].model
     return TrainResult(model=model, stages=stages)

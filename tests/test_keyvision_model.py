@@ -2,7 +2,6 @@
 and the heatmap regulariser, the dynamics loss on encoded keypoints against the cldyn loss applied by
 hand, and a tiny end-to-end training on synthetic pendulum frames (a disc on a circle) with resume."""
 
-import dataclasses
 
 import equinox as eqx
 import jax
@@ -231,20 +230,37 @@ def test_training_lowers_reconstruction_and_dynamics_losses(trained):
     _assert_bitwise_equal(result.stages["autoencoder"].model.dynamics, model.dynamics)
 
 
+class _KillAt(cldyn.AbstractProgressMeter):
+    """Interrupts the training (as Ctrl-C would) at the first record at or after `step` of `stage`."""
+
+    stage: str
+    step: int
+
+    def start(self, total, *, initial=0, desc="", unit="step"):
+        return desc
+
+    def update(self, state, done, info=None):
+        if state == self.stage and done >= self.step:
+            raise KeyboardInterrupt
+        return state
+
+    def close(self, state):
+        del state
+
+
 @pytest.mark.slow
 @pytest.mark.xdist_group("trained")
 def test_interrupted_training_resumes_bitwise(trained, tmp_path):
     _, data, _, whole = trained
     model = _model(jax.random.key(0))
     # killed in stage (a), then in stage (c): each restart skips the finished stages
-    first = SCHEDULE.autoencoder_steps // 2
-    for schedule in (
-        dataclasses.replace(SCHEDULE, autoencoder_steps=first, dynamics_steps=0, joint_steps=0),
-        dataclasses.replace(SCHEDULE, joint_steps=SCHEDULE.joint_steps // 2),
-        SCHEDULE,
-    ):
-        resumed = keyvision.train(model, data, key=jax.random.key(1), schedule=schedule, out=tmp_path,
-                                  resume=True)
+    for kill in (_KillAt("autoencoder", SCHEDULE.autoencoder_steps // 2), _KillAt("joint", 10)):
+        with pytest.raises(KeyboardInterrupt):
+            keyvision.train(model, data, key=jax.random.key(1), schedule=SCHEDULE, out=tmp_path,
+                            resume=True, progress_meter=kill)
+    resumed = keyvision.train(
+        model, data, key=jax.random.key(1), schedule=SCHEDULE, out=tmp_path, resume=True
+    )
     assert resumed.stages["autoencoder"].history[0]["step"] == 10  # the history carried over
     _assert_bitwise_equal(resumed.model, whole.model)
 

@@ -77,7 +77,21 @@ def register(subparsers) -> None:
         "--joint-steps", type=steps, default=default.joint_steps, help="steps of stage (c), joint"
     )
     parser.add_argument("--window", type=count, default=default.window, help="frames per window of stage (c)")
-    parser.add_argument("--lr", type=positive(), default=default.learning_rate, help="learning rate")
+    parser.add_argument(
+        "--lr", type=positive(), default=default.learning_rate, help="peak learning rate of stage (a)"
+    )
+    parser.add_argument(
+        "--joint-lr",
+        type=positive(),
+        default=default.joint_learning_rate,
+        help="peak learning rate of stage (c)",
+    )
+    parser.add_argument(
+        "--warmup-steps",
+        type=positive(integer=True, allow_zero=True),
+        default=default.warmup_steps,
+        help="steps of linear learning-rate warm-up at the start of every stage",
+    )
     parser.add_argument(
         "--autoencoder-batch",
         type=count,
@@ -98,6 +112,11 @@ def register(subparsers) -> None:
         type=positive(allow_zero=True),
         default=default.heatmap_weight,
         help="weight of the heatmap regulariser (0 leaves it out)",
+    )
+    parser.add_argument(
+        "--augment",
+        action="store_true",
+        help="show the estimator each frame turned and mirrored at random (dihedral augmentation)",
     )
     parser.add_argument("--seed", type=seed, default=0, help="seed of the model and the batches")
     parser.add_argument("--resume", action="store_true", help="continue the training in --out")
@@ -200,10 +219,13 @@ def run(args: argparse.Namespace) -> int:
         joint_steps=args.joint_steps,
         window=args.window,
         learning_rate=args.lr,
+        joint_learning_rate=args.joint_lr,
+        warmup_steps=args.warmup_steps,
         autoencoder_batch=args.autoencoder_batch,
         joint_batch=args.joint_batch,
         dynamics_weight=args.dynamics_weight,
         heatmap_weight=args.heatmap_weight,
+        augment=args.augment,
     )
     spec.update(
         seed=args.seed,
