@@ -15,6 +15,7 @@ $(STAMP): pyproject.toml
 
 demo: $(STAMP)
 	$(BIN)/python -m cldyn demo --overwrite
+	$(BIN)/python -m keyvision demo --overwrite
 
 lint: $(STAMP)
 	$(BIN)/ruff check cldyn keyvision tests benchmarks examples docs

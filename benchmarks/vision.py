@@ -39,8 +39,7 @@ def _cli(*argv) -> None:
         raise SystemExit(f"keyvision {argv[0]} failed with status {status}")
 
 
-def _images_per_second(train: dict, schedule: dict) -> float | None:
-    stages = train.get("stages", {})
+def _images_per_second(stages: dict, schedule: dict) -> float | None:
     frames = 0
     seconds = 0.0
     for stage, per_step in (
@@ -79,7 +78,7 @@ def scene(name: str, args) -> dict:
     spec = json.loads((model / "keyvision.json").read_text())
     vpt = json.loads((evaluation / "vpt.json").read_text())
     stages = {}
-    for stage in ("autoencoder", "dynamics", "joint"):
+    for stage in ("autoencoder", "dynamics", "joint", "refit"):
         history = model / f"history-{stage}.json"
         if history.is_file():
             records = json.loads(history.read_text())["records"]
@@ -98,7 +97,7 @@ def scene(name: str, args) -> dict:
         "schedule": spec["schedule"],
         "training_runs": spec.get("data", {}).get("runs"),
         "train": {"stages": stages, "seconds_this_call": round(train_seconds, 1)},
-        "images_per_second": _images_per_second({"stages": stages}, spec["schedule"]),
+        "images_per_second": _images_per_second(stages, spec["schedule"]),
     }
 
 

@@ -1,9 +1,11 @@
 """Training KeyCLD from images in stages, each one call of `cldyn.fit` (no second training loop).
 
 Joint training from scratch is slow on a CPU and reconstruction alone does not place the
-keypoints, so the recipe has three stages: (a) the autoencoder (estimator and renderer) on single
-frames, (b) the dynamics on the keypoints of the frozen estimator (cheap: no images involved), and
-(c) everything jointly on short windows of frames.
+keypoints, so the recipe has four stages: (a) the autoencoder (estimator and renderer) on single
+frames, (b) the dynamics on the keypoints of the frozen estimator (cheap: no images involved),
+(c) everything jointly on short windows of frames, which makes the keypoints consistent with the
+dynamics and far less noisy, and (d) the dynamics alone again on those keypoints, by multiple
+shooting.
 """
 
 import dataclasses
@@ -28,7 +30,7 @@ from ._loss import HeatmapRegulariser, KeypointDynamics, Reconstruction
 from ._model import KeyCLD, parameter_dtype
 
 _SCHEMA = "keyvision.Train/1"
-_STAGES = ("autoencoder", "dynamics", "joint")
+_STAGES = ("autoencoder", "dynamics", "joint", "refit")
 _ENCODE_FRAMES = 256  # frames per call when encoding a dataset: bounds the memory of the activations
 
 
@@ -47,6 +49,12 @@ class Schedule:
     - `joint_steps`: steps of stage (c), everything trained with `Reconstruction() +
       heatmap_weight * HeatmapRegulariser() + dynamics_weight * KeypointDynamics(dynamics_loss)`.
     - `joint_batch`, `window`: windows per step, and frames per window, of stage (c).
+    - `refit_steps`: steps of stage (d), the dynamics alone fitted again, with `refit_loss`, to the
+      keypoints of the estimator as stage (c) left it (its keypoints are far less noisy than those
+      of stage (a), which the dynamics of stage (b) had to fit); `refit_batch` runs per step.
+    - `refit_loss`: a cldyn loss, or `None` for `cldyn.MultipleShooting` over segments of about
+      half a run (23 intervals of the paper's 50-frame runs): the predictions that the valid
+      prediction time scores, from central-difference velocities.
     - `dynamics_loss`: a cldyn loss; `cldyn.Collocation()` (eq. 11-13) by default.
     - `dynamics_weight`: the weight `lambda` of the dynamics loss in stage (c).
     - `heatmap_weight`: the weight of the heatmap regulariser (0 leaves it out, as the FC estimator
@@ -77,6 +85,9 @@ class Schedule:
     joint_steps: int = 1000
     joint_batch: int = 8
     window: int = 10
+    refit_steps: int = 2000
+    refit_batch: int = 32
+    refit_loss: cldyn.AbstractLoss | None = None
     dynamics_loss: cldyn.AbstractLoss = cldyn.Collocation()
     dynamics_weight: float = 1e-3
     heatmap_weight: float = 0.1
@@ -90,10 +101,10 @@ class Schedule:
     checkpoint_every: int = 500
 
     def __post_init__(self):
-        for name in ("autoencoder_steps", "dynamics_steps", "joint_steps"):
+        for name in ("autoencoder_steps", "dynamics_steps", "joint_steps", "refit_steps"):
             check_positive(f"Schedule: {name}", getattr(self, name), integer=True, allow_zero=True)
-        for name in ("autoencoder_batch", "dynamics_batch", "joint_batch", "window", "log_every",
-                     "checkpoint_every"):
+        for name in ("autoencoder_batch", "dynamics_batch", "joint_batch", "refit_batch", "window",
+                     "log_every", "checkpoint_every"):
             check_positive(f"Schedule: {name}", getattr(self, name), integer=True)
         for name in ("learning_rate", "dynamics_learning_rate", "joint_learning_rate", "final_learning_rate"):
             check_positive(f"Schedule: {name}", getattr(self, name))
@@ -109,11 +120,14 @@ class Schedule:
             raise TypeError(f"Schedule: augment must be True or False, got {self.augment!r}")
         if not isinstance(self.dynamics_loss, cldyn.AbstractLoss):
             raise TypeError(f"Schedule: dynamics_loss must be a cldyn loss, got {self.dynamics_loss!r}")
+        if self.refit_loss is not None and not isinstance(self.refit_loss, cldyn.AbstractLoss):
+            raise TypeError(f"Schedule: refit_loss must be a cldyn loss or None, got {self.refit_loss!r}")
 
     def describe(self) -> dict:
         """The schedule as JSON-able values (the loss as its description)."""
         described = dataclasses.asdict(self)
         described["dynamics_loss"] = eqx.tree_pformat(self.dynamics_loss)
+        described["refit_loss"] = None if self.refit_loss is None else eqx.tree_pformat(self.refit_loss)
         return described
 
 
@@ -125,7 +139,7 @@ class TrainResult:
 
     - `model`: the trained `KeyCLD`.
     - `stages`: the `cldyn.FitResult` of every stage that ran, by name (`"autoencoder"`,
-      `"dynamics"`, `"joint"`), with its history and settings (the key of each stage among them).
+      `"dynamics"`, `"joint"`, `"refit"`), with its history and settings (the key of each stage among them).
     """
 
     model: KeyCLD
@@ -198,7 +212,7 @@ def train(
     progress_meter: cldyn.AbstractProgressMeter = cldyn.NoProgressMeter(),
     devices: Sequence[jax.Device] | None = None,
 ) -> TrainResult:
-    """Train a KeyCLD model on frames, unsupervised, in three stages of `cldyn.fit`.
+    """Train a KeyCLD model on frames, unsupervised, in four stages of `cldyn.fit`.
 
     1. `"autoencoder"`: the estimator and the renderer on single frames (reconstruction, eq. 10,
        plus the heatmap regulariser); the dynamics are frozen.
@@ -207,6 +221,8 @@ def train(
        `schedule.dynamics_loss` (collocation, eq. 11-13: seconds, no images involved).
     3. `"joint"`: everything on windows of `schedule.window` frames with
        $L = L_r + \\lambda L_d$ (plus the regulariser), $L_d$ on the encoded keypoints.
+    4. `"refit"`: the frames are encoded again and the dynamics alone are fitted to the new
+       keypoints with `schedule.refit_loss` (multiple shooting by default).
 
     Each stage is one `fit` with its own key (split from `key`) and its own files in `out`
     (`checkpoint-<stage>.eqx`, `history-<stage>.json`, `model-<stage>.eqx`), float32, the batch sharded
@@ -243,7 +259,8 @@ def train(
         raise TypeError(f"train: data must be keyvision.ImageSequences, got {type(data).__name__}")
     if not isinstance(schedule, Schedule):
         raise TypeError(f"train: schedule must be a keyvision.Schedule, got {type(schedule).__name__}")
-    keys = dict(zip(_STAGES, jax.random.split(key, len(_STAGES))))
+    keys = dict(zip(_STAGES, jax.random.split(key, 3)))
+    keys["refit"] = jax.random.fold_in(key, 3)  # the first three stages keep the keys they always had
     if out is not None:
         out = pathlib.Path(out)
         out.mkdir(parents=True, exist_ok=True)
@@ -300,5 +317,19 @@ def train(
             validation=validation, stage="joint", loop=images_loop, **common,
         )
         model = stages["joint"].model
+
+    if schedule.refit_steps:
+        keypoints = encode_sequences(model, data)
+        refit_loss = schedule.refit_loss
+        if refit_loss is None:
+            refit_loss = cldyn.MultipleShooting(segment=max(1, (data.num_samples - 3) // 2))
+        stages["refit"] = cldyn.fit(
+            model.dynamics, keypoints, loss=refit_loss, steps=schedule.refit_steps, key=keys["refit"],
+            optimizer=_adam(schedule, schedule.dynamics_learning_rate, schedule.refit_steps),
+            batching=cldyn.Runs(min(schedule.refit_batch, keypoints.num_runs)),
+            validation=None if validation is None else encode_sequences(model, validation),
+            stage="refit", **common,
+        )
+        model = eqx.tree_at(lambda m: m.dynamics, model, stages["refit"].model)
     return TrainResult(model=model, stages=stages)
 

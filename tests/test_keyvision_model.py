@@ -179,7 +179,7 @@ def test_heatmap_regulariser_closed_form():
 RUNS, SAMPLES = 16, 16
 SCHEDULE = keyvision.Schedule(
     autoencoder_steps=120, autoencoder_batch=32, dynamics_steps=1000, dynamics_batch=8, joint_steps=20,
-    joint_batch=4, window=8, dynamics_weight=1e-4, heatmap_weight=0.0, learning_rate=3e-3,
+    joint_batch=4, window=8, refit_steps=200, dynamics_weight=1e-4, heatmap_weight=0.0, learning_rate=3e-3,
     dynamics_learning_rate=1e-2, log_every=10, checkpoint_every=1000,
 )
 RECONSTRUCTION_GAIN = 0.25  # the trained reconstruction error is at most this fraction of the initial
@@ -214,7 +214,7 @@ def trained(tmp_path_factory):
 @pytest.mark.xdist_group("trained")
 def test_training_lowers_reconstruction_and_dynamics_losses(trained):
     model, data, angles, result = trained
-    assert set(result.stages) == {"autoencoder", "dynamics", "joint"}
+    assert set(result.stages) == {"autoencoder", "dynamics", "joint", "refit"}
     before, after = _reconstruction(model, data), _reconstruction(result.model, data)
     assert after < RECONSTRUCTION_GAIN * before
     # stage (b) fitted the dynamics to the keypoints of the frozen autoencoder
@@ -222,6 +222,11 @@ def test_training_lowers_reconstruction_and_dynamics_losses(trained):
     initial = cldyn.Collocation()(model.dynamics, keypoints)
     fitted = cldyn.Collocation()(result.stages["dynamics"].model, keypoints)
     assert fitted < DYNAMICS_GAIN * initial
+    # stage (d) fitted the dynamics again, by multiple shooting, to the keypoints of stage (c)
+    keypoints = keyvision.encode_sequences(result.stages["joint"].model, data)
+    shooting = cldyn.MultipleShooting(segment=(SAMPLES - 3) // 2)
+    before_refit = shooting(result.stages["joint"].model.dynamics, keypoints)
+    assert shooting(result.model.dynamics, keypoints) < DYNAMICS_GAIN * before_refit
     # the keypoint follows the disc: the pose is an affine function of it
     estimated = np.asarray(eqx.filter_jit(keyvision.KeyCLD.encode)(result.model, data.images()))
     pose = np.stack([np.sin(angles), np.cos(angles)], axis=-1)

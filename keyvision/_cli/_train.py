@@ -24,7 +24,7 @@ from cldyn._keycld import KEYCLD_SCENES, MODEL_KINDS
 
 from ._common import MODEL_NAME, SPEC_NAME, frames_file
 
-_STAGES = ("autoencoder", "dynamics", "joint")
+_STAGES = ("autoencoder", "dynamics", "joint", "refit")
 _STAGE_FILES = tuple(
     f"{name}-{stage}.{ext}"
     for stage in _STAGES
@@ -45,9 +45,10 @@ def register(subparsers) -> None:
         "train",
         help="learn a KeyCLD model from rendered frames",
         description="Train a KeyCLD model (keypoint estimator, cldyn dynamics, renderer) on the training "
-        "runs of frames written by `keyvision render`, unsupervised, in three stages: the autoencoder on "
-        "single frames, the dynamics on the frozen keypoints (collocation), then everything jointly on "
-        "windows of frames. The dynamics get the constraints of the frames' KeyCLD scene. Writes "
+        "runs of frames written by `keyvision render`, unsupervised, in four stages: the autoencoder on "
+        "single frames, the dynamics on the frozen keypoints (collocation), everything jointly on windows "
+        "of frames, then the dynamics again on the keypoints of the joint stage (multiple shooting). The "
+        "dynamics get the constraints of the frames' KeyCLD scene. Writes "
         "keyvision.json and model.eqx (and the stages' checkpoints) to --out; prints a JSON summary.",
     )
     count, steps = positive(integer=True), positive(integer=True, allow_zero=True)
@@ -75,6 +76,12 @@ def register(subparsers) -> None:
     )
     parser.add_argument(
         "--joint-steps", type=steps, default=default.joint_steps, help="steps of stage (c), joint"
+    )
+    parser.add_argument(
+        "--refit-steps",
+        type=steps,
+        default=default.refit_steps,
+        help="steps of stage (d), the dynamics again on the keypoints of stage (c) (multiple shooting)",
     )
     parser.add_argument("--window", type=count, default=default.window, help="frames per window of stage (c)")
     parser.add_argument(
@@ -166,7 +173,7 @@ def _check_frames(args: argparse.Namespace, frames) -> None:
         raise CommandError(
             f"--window {args.window}: the collocation loss needs at least {_COLLOCATION_FRAMES}"
         )
-    if args.dynamics_steps and frames.num_frames < _COLLOCATION_FRAMES:
+    if (args.dynamics_steps or args.refit_steps) and frames.num_frames < _COLLOCATION_FRAMES:
         raise CommandError(
             f"--data: runs of {frames.num_frames} frames; the collocation loss needs at least "
             f"{_COLLOCATION_FRAMES}"
@@ -217,6 +224,7 @@ def run(args: argparse.Namespace) -> int:
         autoencoder_steps=args.autoencoder_steps,
         dynamics_steps=args.dynamics_steps,
         joint_steps=args.joint_steps,
+        refit_steps=args.refit_steps,
         window=args.window,
         learning_rate=args.lr,
         joint_learning_rate=args.joint_lr,
