@@ -47,7 +47,7 @@ class Schedule:
       estimator with `dynamics_loss`.
     - `dynamics_batch`: runs of keypoints per step of stage (b) (at most the number of runs).
     - `joint_steps`: steps of stage (c), everything trained with `Reconstruction() +
-      heatmap_weight * HeatmapRegulariser() + dynamics_weight * KeypointDynamics(dynamics_loss)`.
+      heatmap_weight * HeatmapRegulariser() + dynamics_weight * h^4 * KeypointDynamics(dynamics_loss)`.
     - `joint_batch`, `window`: windows per step, and frames per window, of stage (c).
     - `refit_steps`: steps of stage (d), the dynamics alone fitted again, with `refit_loss`, to the
       keypoints of the estimator as stage (c) left it (its keypoints are far less noisy than those
@@ -56,7 +56,11 @@ class Schedule:
       half a run (23 intervals of the paper's 50-frame runs): the predictions that the valid
       prediction time scores, from central-difference velocities.
     - `dynamics_loss`: a cldyn loss; `cldyn.Collocation()` (eq. 11-13) by default.
-    - `dynamics_weight`: the weight `lambda` of the dynamics loss in stage (c).
+    - `dynamics_weight`: the weight `lambda` of the dynamics loss in stage (c), times `h^4` (`h` the
+      frame interval). cldyn's dynamics losses are accelerations squared; keypoint noise `s` enters
+      them as `s^2 / h^4`, so at a fixed weight the dynamics term would outweigh reconstruction 16
+      times more at 100 frames per second than at 50. `h^4 L_d` is a squared position in the image
+      frame, whatever the frame rate, and one weight serves every scene.
     - `heatmap_weight`: the weight of the heatmap regulariser (0 leaves it out, as the FC estimator
       needs).
     - `augment`: show the estimator every frame of stages (a) and (c) under a random dihedral
@@ -89,7 +93,7 @@ class Schedule:
     refit_batch: int = 32
     refit_loss: cldyn.AbstractLoss | None = None
     dynamics_loss: cldyn.AbstractLoss = cldyn.Collocation()
-    dynamics_weight: float = 1e-3
+    dynamics_weight: float = 60.0
     heatmap_weight: float = 0.1
     augment: bool = False
     learning_rate: float = 1e-3
@@ -309,7 +313,8 @@ def train(
         model = eqx.tree_at(lambda m: m.dynamics, model, stages["dynamics"].model)
 
     if schedule.joint_steps:
-        loss = images_loss + schedule.dynamics_weight * KeypointDynamics(schedule.dynamics_loss)
+        weight = schedule.dynamics_weight * data.dt**4
+        loss = images_loss + weight * KeypointDynamics(schedule.dynamics_loss)
         stages["joint"] = cldyn.fit(
             model, data, loss=loss, steps=schedule.joint_steps, key=keys["joint"],
             optimizer=_adam(schedule, schedule.joint_learning_rate, schedule.joint_steps),

@@ -179,8 +179,8 @@ def test_heatmap_regulariser_closed_form():
 RUNS, SAMPLES = 16, 16
 SCHEDULE = keyvision.Schedule(
     autoencoder_steps=120, autoencoder_batch=32, dynamics_steps=1000, dynamics_batch=8, joint_steps=20,
-    joint_batch=4, window=8, refit_steps=200, dynamics_weight=1e-4, heatmap_weight=0.0, learning_rate=3e-3,
-    dynamics_learning_rate=1e-2, log_every=10, checkpoint_every=1000,
+    joint_batch=4, window=8, refit_steps=200, dynamics_weight=1e-4 / DT**4, heatmap_weight=0.0,
+    learning_rate=3e-3, dynamics_learning_rate=1e-2, log_every=10, checkpoint_every=1000,
 )
 RECONSTRUCTION_GAIN = 0.25  # the trained reconstruction error is at most this fraction of the initial
 DYNAMICS_GAIN = 0.9  # the same for the collocation loss of the dynamics on the frozen keypoints

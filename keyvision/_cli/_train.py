@@ -112,7 +112,8 @@ def register(subparsers) -> None:
         "--dynamics-weight",
         type=positive(allow_zero=True),
         default=default.dynamics_weight,
-        help="weight of the dynamics loss in stage (c)",
+        help="weight of the dynamics loss in stage (c), times h^4 (h the frame interval: a squared "
+        "position, the same scale at any frame rate)",
     )
     parser.add_argument(
         "--heatmap-weight",
