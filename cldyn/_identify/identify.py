@@ -22,7 +22,7 @@ from .errors import errors
 from .library import EFFECTS, resolve
 from .limits import limit_contacts
 from .refit import augment, refit
-from .regression import Criteria, Problem, attribute
+from .regression import Criteria, Problem, attribute, coefficients
 from .residual import Features, Residual, evaluate
 from .result import Curves, Detection, Identification, Scatter
 from .smoothing import Prepared, Smoothing, SmoothingChoice, prepare
@@ -303,6 +303,9 @@ def identify(
             meter = progress_meter.update(meter, 1 + round_index, info)
             if not new:
                 break
+            if len(new) < len(result.selected):
+                # the coefficients of the detected effects without the selected candidates that failed
+                new = _refitted_alone(problem, new)
             outside = _unrepresentable(new, prepared.q, -(-choice.margin // choice.step))
             if outside is not None and (outside & ~prepared.excluded).any():
                 problems.append(_unrepresentable_note(new, outside, tests))
@@ -322,7 +325,9 @@ def identify(
             # each detection must lower the held-out rollout error: against the others of its round alone
             worse = []
             for d in new if len(new) > 1 else ():
-                without = trial_of([o for o in new if o is not d])[2]
+                others = [o for o in new if o is not d]
+                # the others' coefficients as the regression gives them without this one
+                without = trial_of(_refitted_alone(problem, others))[2]
                 if not trial_errors.rollout_rmse_1s < without.rollout_rmse_1s:
                     worse.append(d)
                     problems.append(
@@ -404,6 +409,17 @@ def identify(
         curves=Curves(ts, error_before, error_after),
         scatter=tuple(scatter),
     )
+
+
+def _refitted_alone(problem: Problem, detections: list[Detection]) -> list[Detection]:
+    """The detections with the coefficients the regression gives them on their own (their bootstrap
+    intervals move with their values)."""
+    thetas = coefficients(problem, [problem.candidates.index(d.candidate) for d in detections])
+    out = []
+    for d, theta in zip(detections, thetas):
+        moved = d.refitted(d.candidate.parameters(theta))
+        out.append(dataclasses.replace(moved, theta=np.asarray(theta)))
+    return out
 
 
 def _unrepresentable(detections, q: np.ndarray, dilation: int) -> np.ndarray | None:

@@ -230,6 +230,31 @@ def _per_run_normals(problem: Problem, r, f, kept, scale):
     return A, b, c, n
 
 
+def _scale(problem: Problem) -> np.ndarray:
+    """Per column, the RMS of the weighted features of the counted equations (for conditioning)."""
+    kept = problem.kept_fit
+    w = problem.weights[None, None, :, None] * kept[:, :, None, None]
+    scale = np.sqrt(np.sum((problem.f_fit * w) ** 2, axis=(0, 1, 2)) / max(kept.sum() * w.shape[2], 1))
+    return np.where(scale > 0, scale, 1.0)
+
+
+def coefficients(problem: Problem, chosen: Sequence[int]) -> list[np.ndarray]:
+    """The sign-constrained least-squares coefficients of the chosen candidates (indices into
+    `problem.candidates`) fitted on their own to the fit runs: one array per candidate, in the
+    effects' own units. What the others of a round would be without one of them."""
+    groups = Groups.of(problem.candidates)
+    scale = _scale(problem)
+    A_r, b_r, c_r, n_r = _per_run_normals(problem, problem.r_fit, problem.f_fit, problem.kept_fit, scale)
+    columns, signs = groups.select(chosen)
+    theta, _ = fit(Normal(A_r.sum(0), b_r.sum(0), float(c_r.sum()), int(n_r.sum())), columns, signs)
+    out, offset = [], 0
+    for g in chosen:
+        own = list(groups.columns[g])
+        out.append(theta[offset : offset + len(own)] / scale[own])
+        offset += len(own)
+    return out
+
+
 def attribute(
     problem: Problem,
     *,
@@ -253,9 +278,7 @@ def attribute(
     candidates = problem.candidates
     groups = Groups.of(candidates)
     kept = problem.kept_fit
-    w = problem.weights[None, None, :, None] * kept[:, :, None, None]
-    scale = np.sqrt(np.sum((problem.f_fit * w) ** 2, axis=(0, 1, 2)) / max(kept.sum() * w.shape[2], 1))
-    scale = np.where(scale > 0, scale, 1.0)
+    scale = _scale(problem)
     A_r, b_r, c_r, n_r = _per_run_normals(problem, problem.r_fit, problem.f_fit, kept, scale)
     total = Normal(A_r.sum(0), b_r.sum(0), float(c_r.sum()), int(n_r.sum()))
     A_h, b_h, c_h, n_h = _per_run_normals(problem, problem.r_held, problem.f_held, problem.kept_held, scale)
