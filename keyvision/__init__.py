@@ -54,6 +54,7 @@ from ._renderer import (
 from ._train import (
     Schedule as Schedule,
     TrainResult as TrainResult,
+    assign_keypoints as assign_keypoints,
     encode_sequences as encode_sequences,
     train as train,
 )

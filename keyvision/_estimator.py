@@ -1,16 +1,18 @@
 """Keypoint estimators: an image in, Cartesian keypoints in the image frame out (paper section 3, A.4)."""
 
 import abc
+from collections.abc import Sequence
 
 import equinox as eqx
 import jax
 import jax.numpy as jnp
+import numpy as np
 from jaxtyping import Array, Float, PRNGKeyArray
 
 from cldyn._misc import check_positive
 from cldyn._nn import linear
 
-from ._keypoints import spatial_softmax
+from ._keypoints import check_order, spatial_softmax
 from ._unet import Block, UNet, max_pool
 
 
@@ -41,6 +43,20 @@ class AbstractKeypointEstimator(eqx.Module):
     @abc.abstractmethod
     def __call__(self, image: Float[Array, "H W C"]) -> Float[Array, "K 2"]:
         """The keypoints of one image."""
+
+    def permute(self, order: Sequence[int]) -> "AbstractKeypointEstimator":
+        """The same estimator with its keypoints renumbered: keypoint `k` of the result is keypoint
+        `order[k]` of this one, for every image.
+
+        `keyvision.assign_keypoints` calls it; the identity order returns the estimator itself, and a
+        subclass that does not override it cannot be renumbered (a `NotImplementedError` says so)."""
+        index = check_order(type(self).__name__, order, self.num_keypoints)
+        if np.array_equal(np.asarray(index), np.arange(self.num_keypoints)):
+            return self
+        raise NotImplementedError(
+            f"{type(self).__name__} does not implement permute(order): its keypoints cannot be renumbered "
+            f"to {list(order)}; implement it, or order the constraints as the estimator found the keypoints"
+        )
 
 
 class KeypointEstimator(AbstractKeypointEstimator):
@@ -98,6 +114,14 @@ class KeypointEstimator(AbstractKeypointEstimator):
         """The keypoints `(K, 2)` of one image `(H, W, C)`: `spatial_softmax(self.heatmaps(image))`."""
         return spatial_softmax(self.heatmaps(image))
 
+    def permute(self, order: Sequence[int]) -> "KeypointEstimator":
+        """See `AbstractKeypointEstimator.permute`: the heatmaps' output channels, reordered."""
+        index = check_order("KeypointEstimator", order, self.num_keypoints)
+        head = self.unet.head
+        return eqx.tree_at(
+            lambda e: (e.unet.head.weight, e.unet.head.bias), self, (head.weight[index], head.bias[index])
+        )
+
 
 class KeypointEstimatorFC(AbstractKeypointEstimator):
     """The FC ablation of appendix A.4: four convolution blocks (widths `w, 2w, 4w, 8w`), each followed
@@ -151,3 +175,10 @@ class KeypointEstimatorFC(AbstractKeypointEstimator):
             x = max_pool(block(x))
         x = jax.nn.relu(self.hidden(x.reshape(-1)))
         return self.output(x).reshape(self.num_keypoints, 2)
+
+    def permute(self, order: Sequence[int]) -> "KeypointEstimatorFC":
+        """See `AbstractKeypointEstimator.permute`: the output layer's rows, reordered in pairs."""
+        index = check_order("KeypointEstimatorFC", order, self.num_keypoints)
+        rows = (2 * index[:, None] + jnp.arange(2)[None, :]).reshape(-1)
+        weight, bias = self.output.weight[rows], self.output.bias[rows]
+        return eqx.tree_at(lambda e: (e.output.weight, e.output.bias), self, (weight, bias))

@@ -10,8 +10,11 @@ so row 0 is the top row of the image and column 0 its left column. Heatmaps are 
 `(num_keypoints, H, W)`, with rows and columns as in the image.
 """
 
+from collections.abc import Sequence
+
 import jax
 import jax.numpy as jnp
+import numpy as np
 from jaxtyping import Array, ArrayLike, Float
 
 
@@ -139,3 +142,13 @@ def gaussian_maps(
     grid = pixel_grid(height, width, dtype=keypoints.dtype)
     offsets = grid[None, :, :, :] - keypoints[:, None, None, :]
     return jnp.exp(-jnp.sum(offsets**2, axis=-1) / (2 * sigma**2))
+
+
+def check_order(owner: str, order: Sequence[int], num_keypoints: int) -> Array:
+    """`order` as an index array, or a `ValueError` if it is not a permutation of the keypoints."""
+    index = np.asarray(order, dtype=int).reshape(-1)
+    if sorted(index.tolist()) != list(range(num_keypoints)):
+        raise ValueError(
+            f"{owner}.permute: order must be a permutation of 0..{num_keypoints - 1}, got {list(order)}"
+        )
+    return jnp.asarray(index)

@@ -1,16 +1,18 @@
 """Renderers: Cartesian keypoints in the image frame in, one image out (paper section 3, A.4)."""
 
 import abc
+from collections.abc import Sequence
 
 import equinox as eqx
 import jax
 import jax.numpy as jnp
+import numpy as np
 from jaxtyping import Array, Float, PRNGKeyArray
 
 from cldyn._misc import check_positive
 from cldyn._nn import conv2d, linear
 
-from ._keypoints import gaussian_maps
+from ._keypoints import check_order, gaussian_maps
 from ._unet import Block, UNet, upsample
 
 _CONSTANT_STD = 0.01  # initial scale of the learned constant feature tensor
@@ -34,6 +36,21 @@ class AbstractRenderer(eqx.Module):
     @abc.abstractmethod
     def __call__(self, keypoints: Float[Array, "K 2"]) -> Float[Array, "H W 3"]:
         """The image of one set of keypoints."""
+
+    def permute(self, order: Sequence[int]) -> "AbstractRenderer":
+        """The same renderer for renumbered keypoints: the result draws `keypoints` as this one
+        draws them with keypoint `order[k]` at `keypoints[k]` (pairs with
+        `AbstractKeypointEstimator.permute`).
+
+        The identity order returns the renderer itself; a subclass that does not override it cannot
+        be renumbered (a `NotImplementedError` says so)."""
+        index = check_order(type(self).__name__, order, self.num_keypoints)
+        if np.array_equal(np.asarray(index), np.arange(self.num_keypoints)):
+            return self
+        raise NotImplementedError(
+            f"{type(self).__name__} does not implement permute(order): its keypoints cannot be renumbered "
+            f"to {list(order)}; implement it, or order the constraints as the estimator found the keypoints"
+        )
 
 
 class Renderer(AbstractRenderer):
@@ -103,6 +120,14 @@ class Renderer(AbstractRenderer):
         x = self.unet(jnp.concatenate([self.constant, maps], axis=0))
         return jnp.moveaxis(jax.nn.sigmoid(x), 0, -1)
 
+    def permute(self, order: Sequence[int]) -> "Renderer":
+        """See `AbstractRenderer.permute`: the first convolution's inputs from the maps, reordered."""
+        index = check_order("Renderer", order, self.num_keypoints)
+        channels = self.constant.shape[0]
+        weight = self.unet.down1.conv.weight
+        weight = weight.at[:, channels : channels + self.num_keypoints].set(weight[:, channels + index])
+        return eqx.tree_at(lambda r: r.unet.down1.conv.weight, self, weight)
+
 
 class RendererFC(AbstractRenderer):
     """The FC ablation of appendix A.4: fully connected layers (256 units, ReLU) map the `2K`
@@ -163,3 +188,9 @@ class RendererFC(AbstractRenderer):
         for block in self.blocks:
             x = upsample(block(x))
         return jnp.moveaxis(jax.nn.sigmoid(self.head(x)), 0, -1)
+
+    def permute(self, order: Sequence[int]) -> "RendererFC":
+        """See `AbstractRenderer.permute`: the first layer's columns, reordered in pairs."""
+        index = check_order("RendererFC", order, self.num_keypoints)
+        columns = (2 * index[:, None] + jnp.arange(2)[None, :]).reshape(-1)
+        return eqx.tree_at(lambda r: r.hidden.weight, self, self.hidden.weight[:, columns])

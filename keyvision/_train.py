@@ -9,9 +9,12 @@ shooting.
 """
 
 import dataclasses
+import itertools
 import json
+import math
 import os
 import pathlib
+import warnings
 from collections.abc import Sequence
 
 import equinox as eqx
@@ -30,7 +33,7 @@ from ._loss import HeatmapRegulariser, KeypointDynamics, Reconstruction
 from ._model import KeyCLD, parameter_dtype
 
 _SCHEMA = "keyvision.Train/1"
-_STAGES = ("autoencoder", "dynamics", "joint", "refit")
+_STAGES = ("autoencoder", "dynamics", "joint")
 _ENCODE_FRAMES = 256  # frames per call when encoding a dataset: bounds the memory of the activations
 
 
@@ -55,6 +58,12 @@ class Schedule:
     - `refit_loss`: a cldyn loss, or `None` for `cldyn.MultipleShooting` over segments of about
       half a run (23 intervals of the paper's 50-frame runs): the predictions that the valid
       prediction time scores, from central-difference velocities.
+    - `rounds`: how often stages (c) and (d) run, in turn; the later rounds are named `joint-2`,
+      `refit-2`, ... The joint stage of the first round trains with `dynamics_loss`, those of the
+      later rounds with `refine_loss` on dynamics that stage (d) has already fitted well.
+    - `refine_loss`: a cldyn loss, or `None` for `cldyn.MultipleShooting` over the window
+      (segments of `window - 3` intervals); `refine_weight` is its weight, times `h^4` as
+      `dynamics_weight`.
     - `dynamics_loss`: a cldyn loss; `cldyn.Collocation()` (eq. 11-13) by default.
     - `dynamics_weight`: the weight `lambda` of the dynamics loss in stage (c), times `h^4` (`h` the
       frame interval). cldyn's dynamics losses are accelerations squared; keypoint noise `s` enters
@@ -92,6 +101,9 @@ class Schedule:
     refit_steps: int = 2000
     refit_batch: int = 32
     refit_loss: cldyn.AbstractLoss | None = None
+    rounds: int = 1
+    refine_loss: cldyn.AbstractLoss | None = None
+    refine_weight: float = 0.6
     dynamics_loss: cldyn.AbstractLoss = cldyn.Collocation()
     dynamics_weight: float = 60.0
     heatmap_weight: float = 0.1
@@ -108,7 +120,7 @@ class Schedule:
         for name in ("autoencoder_steps", "dynamics_steps", "joint_steps", "refit_steps"):
             check_positive(f"Schedule: {name}", getattr(self, name), integer=True, allow_zero=True)
         for name in ("autoencoder_batch", "dynamics_batch", "joint_batch", "refit_batch", "window",
-                     "log_every", "checkpoint_every"):
+                     "rounds", "log_every", "checkpoint_every"):
             check_positive(f"Schedule: {name}", getattr(self, name), integer=True)
         for name in ("learning_rate", "dynamics_learning_rate", "joint_learning_rate", "final_learning_rate"):
             check_positive(f"Schedule: {name}", getattr(self, name))
@@ -118,20 +130,28 @@ class Schedule:
                 "Schedule: final_learning_rate is a fraction of the peak, at most 1; got "
                 f"{self.final_learning_rate}"
             )
-        for name in ("dynamics_weight", "heatmap_weight"):
+        for name in ("dynamics_weight", "refine_weight", "heatmap_weight"):
             check_positive(f"Schedule: {name}", getattr(self, name), allow_zero=True)
         if not isinstance(self.augment, bool):
             raise TypeError(f"Schedule: augment must be True or False, got {self.augment!r}")
         if not isinstance(self.dynamics_loss, cldyn.AbstractLoss):
             raise TypeError(f"Schedule: dynamics_loss must be a cldyn loss, got {self.dynamics_loss!r}")
-        if self.refit_loss is not None and not isinstance(self.refit_loss, cldyn.AbstractLoss):
-            raise TypeError(f"Schedule: refit_loss must be a cldyn loss or None, got {self.refit_loss!r}")
+        for name in ("refit_loss", "refine_loss"):
+            value = getattr(self, name)
+            if value is not None and not isinstance(value, cldyn.AbstractLoss):
+                raise TypeError(f"Schedule: {name} must be a cldyn loss or None, got {value!r}")
+        if self.rounds > 1 and self.refine_loss is None and self.window < 4:
+            raise ValueError(
+                f"Schedule: multiple shooting over windows of {self.window} frames needs at least 4"
+            )
 
     def describe(self) -> dict:
         """The schedule as JSON-able values (the loss as its description)."""
         described = dataclasses.asdict(self)
         described["dynamics_loss"] = eqx.tree_pformat(self.dynamics_loss)
-        described["refit_loss"] = None if self.refit_loss is None else eqx.tree_pformat(self.refit_loss)
+        for name in ("refit_loss", "refine_loss"):
+            value = getattr(self, name)
+            described[name] = None if value is None else eqx.tree_pformat(value)
         return described
 
 
@@ -143,11 +163,73 @@ class TrainResult:
 
     - `model`: the trained `KeyCLD`.
     - `stages`: the `cldyn.FitResult` of every stage that ran, by name (`"autoencoder"`,
-      `"dynamics"`, `"joint"`, `"refit"`), with its history and settings (the key of each stage among them).
+      `"dynamics"`, `"joint"`, `"refit"`, ...), with its history and settings (the key of each stage
+      among them).
+    - `keypoint_order`: how `keyvision.assign_keypoints` renumbered the keypoints of stage (a)
+      (keypoint `k` is the autoencoder's keypoint `keypoint_order[k]`), or `None` if it did not run.
     """
 
     model: KeyCLD
     stages: dict
+    keypoint_order: tuple[int, ...] | None = None
+
+
+_MAX_ASSIGNED = 6  # keypoints: every order is tried (720 at most)
+
+
+@eqx.filter_jit
+def _constraint_spread(constraint, x: Array) -> Array:
+    """The mean over runs of the variance over time of each constraint value, `x` `(R, T, k)`."""
+    values = jax.vmap(jax.vmap(constraint))(x)
+    return jnp.mean(jnp.var(values, axis=1), axis=0)
+
+
+def assign_keypoints(model: KeyCLD, keypoints: cldyn.Sequences) -> tuple[KeyCLD, tuple[int, ...]]:
+    """Number the keypoints of a trained autoencoder so that they keep the dynamics' constraints.
+
+    Stage (a) of `keyvision.train` places the keypoints by reconstruction alone, in no particular
+    order, while the constraints of the dynamics give each keypoint a role (in KeyCLD's cart-pole
+    keypoint 0 is the cart, whose height is fixed, and keypoint 1 the pole's end at a fixed
+    distance from it). Of every order of the keypoints, the one whose constraint values vary least
+    within the runs, $\sum_j \operatorname{mean}_r \operatorname{Var}_t \Phi_j(x_{r,t})$, is
+    applied to the estimator's outputs and the renderer's inputs (`permute`): the autoencoder draws
+    the same images, with its keypoints renumbered.
+
+    **Arguments:**
+
+    - `model`: a `keyvision.KeyCLD` whose dynamics have constraints (others are returned as given).
+    - `keypoints`: the encoded training runs, `cldyn.Sequences` (`keyvision.encode_sequences`).
+
+    **Returns:** `(model, order)`: the renumbered model and the order, keypoint `k` being the old
+    keypoint `order[k]`.
+
+    !!! example
+
+        ```python
+        model, order = keyvision.assign_keypoints(model, keyvision.encode_sequences(model, data))
+        ```
+    """
+    count = model.num_keypoints
+    identity = tuple(range(count))
+    constraint = getattr(model.dynamics, "constraint", None)
+    if constraint is None or count == 1:
+        return model, identity
+    if count > _MAX_ASSIGNED:
+        warnings.warn(
+            f"assign_keypoints: {count} keypoints have {math.factorial(count)} orders; left as they are",
+            stacklevel=2,
+        )
+        return model, identity
+    x = jnp.asarray(keypoints.x).reshape(*keypoints.x.shape[:2], count, 2)
+    spreads = {
+        order: float(jnp.sum(_constraint_spread(constraint, x[:, :, list(order)].reshape(keypoints.x.shape))))
+        for order in itertools.permutations(identity)
+    }
+    order = min(spreads, key=spreads.get)
+    if order == identity:
+        return model, identity
+    permuted = KeyCLD(model.estimator.permute(order), model.dynamics, model.renderer.permute(order))
+    return permuted, order
 
 
 @eqx.filter_jit
@@ -183,6 +265,23 @@ def encode_sequences(model: KeyCLD, data: ImageSequences) -> cldyn.Sequences:
     parts = [_encode_chunk(model, frames[i : i + chunk]) for i in range(0, runs + padded, chunk)]
     x = jnp.concatenate(parts, axis=0)[:runs]
     return cldyn.Sequences(x, jnp.asarray(data.u).astype(x.dtype), data.dt)
+
+
+def stage_names(round_: int) -> tuple[str, str]:
+    """The names of the joint and refit stages of a round (1, 2, ...): `joint`, `refit`, then
+    `joint-2`, `refit-2`, ..."""
+    suffix = "" if round_ == 1 else f"-{round_}"
+    return f"joint{suffix}", f"refit{suffix}"
+
+
+def _stage_key(key, stage: str):
+    # the first three stages keep the keys they always had (a split of `key` in three); the others
+    # fold their number into it
+    if stage in _STAGES:
+        return jax.random.split(key, 3)[_STAGES.index(stage)]
+    name, _, number = stage.partition("-")
+    round_ = int(number) if number else 1
+    return jax.random.fold_in(key, 2 * round_ + (1 if name == "refit" else 0))
 
 
 def _networks_only(model: KeyCLD):
@@ -264,7 +363,6 @@ def train(
     if not isinstance(schedule, Schedule):
         raise TypeError(f"train: schedule must be a keyvision.Schedule, got {type(schedule).__name__}")
     keys = dict(zip(_STAGES, jax.random.split(key, 3)))
-    keys["refit"] = jax.random.fold_in(key, 3)  # the first three stages keep the keys they always had
     if out is not None:
         out = pathlib.Path(out)
         out.mkdir(parents=True, exist_ok=True)
@@ -300,8 +398,12 @@ def train(
         )
         model = stages["autoencoder"].model
 
+    order = None
     if schedule.dynamics_steps:
         keypoints = encode_sequences(model, data)
+        model, order = assign_keypoints(model, keypoints)
+        index = np.asarray([2 * k + c for k in order for c in (0, 1)])
+        keypoints = cldyn.Sequences(keypoints.x[..., index], keypoints.u, keypoints.dt)
         stages["dynamics"] = cldyn.fit(
             model.dynamics, keypoints, loss=schedule.dynamics_loss, steps=schedule.dynamics_steps,
             key=keys["dynamics"],
@@ -312,29 +414,38 @@ def train(
         )
         model = eqx.tree_at(lambda m: m.dynamics, model, stages["dynamics"].model)
 
-    if schedule.joint_steps:
-        weight = schedule.dynamics_weight * data.dt**4
-        loss = images_loss + weight * KeypointDynamics(schedule.dynamics_loss)
-        stages["joint"] = cldyn.fit(
-            model, data, loss=loss, steps=schedule.joint_steps, key=keys["joint"],
-            optimizer=_adam(schedule, schedule.joint_learning_rate, schedule.joint_steps),
-            batching=frames_batching(schedule.joint_batch, schedule.window),
-            validation=validation, stage="joint", loop=images_loop, **common,
-        )
-        model = stages["joint"].model
-
-    if schedule.refit_steps:
-        keypoints = encode_sequences(model, data)
-        refit_loss = schedule.refit_loss
-        if refit_loss is None:
-            refit_loss = cldyn.MultipleShooting(segment=max(1, (data.num_samples - 3) // 2))
-        stages["refit"] = cldyn.fit(
-            model.dynamics, keypoints, loss=refit_loss, steps=schedule.refit_steps, key=keys["refit"],
-            optimizer=_adam(schedule, schedule.dynamics_learning_rate, schedule.refit_steps),
-            batching=cldyn.Runs(min(schedule.refit_batch, keypoints.num_runs)),
-            validation=None if validation is None else encode_sequences(model, validation),
-            stage="refit", **common,
-        )
-        model = eqx.tree_at(lambda m: m.dynamics, model, stages["refit"].model)
-    return TrainResult(model=model, stages=stages)
+    refit_loss = schedule.refit_loss
+    if refit_loss is None:
+        refit_loss = cldyn.MultipleShooting(segment=max(1, (data.num_samples - 3) // 2))
+    refine_loss = schedule.refine_loss
+    if refine_loss is None:
+        refine_loss = cldyn.MultipleShooting(segment=max(1, schedule.window - 3))
+    for round_ in range(1, schedule.rounds + 1):
+        joint, refit = stage_names(round_)
+        if schedule.joint_steps:
+            dynamics_loss, weight = (
+                (schedule.dynamics_loss, schedule.dynamics_weight)
+                if round_ == 1
+                else (refine_loss, schedule.refine_weight)
+            )
+            stages[joint] = cldyn.fit(
+                model, data, loss=images_loss + weight * data.dt**4 * KeypointDynamics(dynamics_loss),
+                steps=schedule.joint_steps, key=_stage_key(key, joint),
+                optimizer=_adam(schedule, schedule.joint_learning_rate, schedule.joint_steps),
+                batching=frames_batching(schedule.joint_batch, schedule.window),
+                validation=validation, stage=joint, loop=images_loop, **common,
+            )
+            model = stages[joint].model
+        if schedule.refit_steps:
+            keypoints = encode_sequences(model, data)
+            stages[refit] = cldyn.fit(
+                model.dynamics, keypoints, loss=refit_loss, steps=schedule.refit_steps,
+                key=_stage_key(key, refit),
+                optimizer=_adam(schedule, schedule.dynamics_learning_rate, schedule.refit_steps),
+                batching=cldyn.Runs(min(schedule.refit_batch, keypoints.num_runs)),
+                validation=None if validation is None else encode_sequences(model, validation),
+                stage=refit, **common,
+            )
+            model = eqx.tree_at(lambda m: m.dynamics, model, stages[refit].model)
+    return TrainResult(model=model, stages=stages, keypoint_order=order)
 

@@ -24,13 +24,7 @@ from cldyn._keycld import KEYCLD_SCENES, MODEL_KINDS
 
 from ._common import MODEL_NAME, SPEC_NAME, frames_file
 
-_STAGES = ("autoencoder", "dynamics", "joint", "refit")
-_STAGE_FILES = tuple(
-    f"{name}-{stage}.{ext}"
-    for stage in _STAGES
-    for name, ext in (("checkpoint", "eqx"), ("history", "json"), ("model", "eqx"))
-)
-_FILES = (SPEC_NAME, MODEL_NAME, "train.json", *_STAGE_FILES)
+_STAGE_FILES = (("checkpoint", "eqx"), ("history", "json"), ("model", "eqx"))
 _VALIDATION_RUNS = 4  # validated in one call at every checkpoint: a few runs suffice
 _COLLOCATION_FRAMES = 5  # the collocation loss's central differences of central differences
 
@@ -83,6 +77,12 @@ def register(subparsers) -> None:
         default=default.refit_steps,
         help="steps of stage (d), the dynamics again on the keypoints of stage (c) (multiple shooting)",
     )
+    parser.add_argument(
+        "--rounds",
+        type=count,
+        default=default.rounds,
+        help="rounds of stages (c) and (d); the later joint stages train with multiple shooting",
+    )
     parser.add_argument("--window", type=count, default=default.window, help="frames per window of stage (c)")
     parser.add_argument(
         "--lr", type=positive(), default=default.learning_rate, help="peak learning rate of stage (a)"
@@ -114,6 +114,12 @@ def register(subparsers) -> None:
         default=default.dynamics_weight,
         help="weight of the dynamics loss in stage (c), times h^4 (h the frame interval: a squared "
         "position, the same scale at any frame rate)",
+    )
+    parser.add_argument(
+        "--refine-weight",
+        type=positive(allow_zero=True),
+        default=default.refine_weight,
+        help="weight of the multiple-shooting loss in the joint stages of later rounds, times h^4",
     )
     parser.add_argument(
         "--heatmap-weight",
@@ -181,8 +187,18 @@ def _check_frames(args: argparse.Namespace, frames) -> None:
         )
 
 
+def _stages(rounds: int) -> list[str]:
+    from keyvision._train import stage_names
+
+    return ["autoencoder", "dynamics", *(name for r in range(1, rounds + 1) for name in stage_names(r))]
+
+
+def _checkpointed(out, rounds: int) -> bool:
+    return any((out / f"checkpoint-{stage}.eqx").exists() for stage in _stages(rounds))
+
+
 def _interrupted(args: argparse.Namespace, out) -> int:
-    if any((out / f"checkpoint-{stage}.eqx").exists() for stage in _STAGES):
+    if _checkpointed(out, args.rounds):
         argv = [a for a in args.argv if a != "--overwrite"]
         argv += [] if "--resume" in argv else ["--resume"]
         where = "continue with:\n  " + shlex.join(["keyvision", *argv])
@@ -201,7 +217,8 @@ def run(args: argparse.Namespace) -> int:
     created = not out.exists()
     if not args.resume:
         refuse_existing(
-            [out / name for name in _FILES],
+            [out / name for name in (SPEC_NAME, MODEL_NAME, "train.json")]
+            + [out / f"{name}-{stage}.{ext}" for stage in _stages(args.rounds) for name, ext in _STAGE_FILES],
             overwrite=args.overwrite,
             hint="pass --resume to continue that training or --overwrite to start afresh",
         )
@@ -226,6 +243,7 @@ def run(args: argparse.Namespace) -> int:
         dynamics_steps=args.dynamics_steps,
         joint_steps=args.joint_steps,
         refit_steps=args.refit_steps,
+        rounds=args.rounds,
         window=args.window,
         learning_rate=args.lr,
         joint_learning_rate=args.joint_lr,
@@ -233,6 +251,7 @@ def run(args: argparse.Namespace) -> int:
         autoencoder_batch=args.autoencoder_batch,
         joint_batch=args.joint_batch,
         dynamics_weight=args.dynamics_weight,
+        refine_weight=args.refine_weight,
         heatmap_weight=args.heatmap_weight,
         augment=args.augment,
     )
@@ -283,7 +302,7 @@ def run(args: argparse.Namespace) -> int:
             progress_meter=cldyn.TextProgressMeter() if args.progress else cldyn.NoProgressMeter(),
         )
     except BaseException as error:
-        if fresh and not any((out / f"checkpoint-{stage}.eqx").exists() for stage in _STAGES):
+        if fresh and not _checkpointed(out, args.rounds):
             for name in (SPEC_NAME, "train.json"):  # nothing to resume: leave --out as it was
                 (out / name).unlink(missing_ok=True)
             if created and not any(out.iterdir()):
