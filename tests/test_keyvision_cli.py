@@ -186,3 +186,21 @@ def test_render_train_evaluate(tmp_path, capsys):
     movie = imageio.imread(results / "prediction.gif", index=None)
     assert movie.shape[:3] == (6, 4 * 16, 2 * 4 * 16)
     assert np.isfinite(record["keypoint_tracking_r2"]) and record["keypoint_tracking_r2"] <= 1
+
+
+@pytest.mark.mujoco
+def test_demo_predicts_new_runs_with_the_shipped_model(tmp_path, capsys):
+    # the shipped pendulum model on two runs it never saw: its estimator tracks the pole (an affine map
+    # of the keypoint explains the true pose), frames redrawn from their own keypoints stay under the
+    # VPT threshold for the whole run, and the learnt dynamics predict well past the first frames
+    status, out, err = _run(capsys, ["demo", "--out", tmp_path, "--runs", "2", "--seed", "7"])
+    assert status == 0, err
+    record = json.loads((tmp_path / "vpt.json").read_text())
+    assert record["runs"] == 2 and record["frames"] == 50
+    assert record["keypoint_tracking_r2"] > 0.95
+    assert record["autoencoder"]["vpt"]["mean"] > 0.9
+    assert record["autoencoder"]["mse_over_threshold"] < 0.5
+    assert record["vpt"]["mean"] > 0.2
+    for name in ("frames.npz", "mse.png", "strip.png", "prediction.gif"):
+        assert (tmp_path / name).stat().st_size > 0
+    assert "autoencoder alone" in out
