@@ -82,7 +82,7 @@ def test_every_joint_actuated_with_the_reference_gears_and_no_control_limit(name
 
 @pytest.mark.parametrize("name", KEYCLD_SCENES)
 def test_no_friction_the_energy_of_a_free_motion_is_conserved(name):
-    """"Friction was removed": without control, MuJoCo's total energy stays constant (a damping of the
+    """ "Friction was removed": without control, MuJoCo's total energy stays constant (a damping of the
     stock scenes' size would lose orders of magnitude more than the tolerance)."""
     model = _compiled(name)
     model.opt.timestep = 1e-3
@@ -173,6 +173,21 @@ def test_stock_scenes_stay_available(name):
         "jnt_limited",
     ):
         np.testing.assert_array_equal(getattr(ours, field), getattr(stock, field), err_msg=field)
+
+
+@pytest.mark.parametrize("poles", [2, 3])
+def test_the_suite_tasks_with_more_poles_are_scenes(poles):
+    """`cartpole/two_poles` is the scene of dm_control's `two_poles` task: the stock cart-pole with a
+    chain of poles, its rail limits and its one motor on the cart."""
+    name = f"cartpole/{('two', 'three')[poles - 2]}_poles"
+    ours = load_model(name)[0]
+    stock = suite.load("cartpole", name.split("/")[1]).physics.model.ptr
+    for field in ("body_mass", "body_inertia", "dof_damping", "actuator_gear", "jnt_limited", "jnt_range"):
+        np.testing.assert_array_equal(getattr(ours, field), getattr(stock, field), err_msg=field)
+    bridge = from_mjcf(name)
+    assert bridge.joint_names == ("slider",) + tuple(f"hinge_{i}" for i in range(1, poles + 1))
+    assert bridge.actuator_names == ("slide",)
+    assert bridge.joint_limits[0] == (-1.8, 1.8)
 
 
 @pytest.mark.parametrize("name", KEYCLD_SCENES)

@@ -35,7 +35,11 @@ def register(subparsers) -> None:
         ),
     )
     parser.add_argument("--data", required=True, help="a recording saved by `cldyn record` (.npz)")
-    parser.add_argument("--model", required=True, help="the nominal MJCF (file, suite name or keycld/<name>)")
+    parser.add_argument(
+        "--model",
+        required=True,
+        help="the nominal MJCF (file, suite name, cartpole/two_poles or keycld/<name>)",
+    )
     parser.add_argument("--out", required=True, help="directory for report.json/md and plots")
     parser.add_argument(
         "--effects",

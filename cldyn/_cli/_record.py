@@ -5,7 +5,8 @@ import argparse
 from ._common import CommandError, add_command, add_overwrite, finite, output_file, positive, seed
 
 MJCF_HELP = (
-    "an MJCF file, a dm_control suite name (acrobot, cartpole, ...) or keycld/<pendulum|cartpole|acrobot>"
+    "an MJCF file, a dm_control suite name (acrobot, cartpole, ...), cartpole/two_poles or "
+    "cartpole/three_poles (the suite's cart-poles with more poles) or keycld/<pendulum|cartpole|acrobot>"
 )
 INTEGRATORS = ("euler", "rk4", "implicit", "implicitfast")
 

@@ -1,4 +1,5 @@
-"""MJCF sources: files, XML strings, dm_control suite scenes and KeyCLD's variants of them.
+"""MJCF sources: files, XML strings, dm_control suite scenes, the suite tasks that build a scene of
+their own, and KeyCLD's variants of them.
 
 Every source resolves to one self-contained XML text (includes inlined), so that a recording can carry
 the exact scene it came from. KeyCLD's scenes are made by editing dm_control's suite XML in code.
@@ -18,6 +19,13 @@ from .._keycld import KEYCLD_SCENES
 from .._misc import optional_import
 
 _KEYCLD_PREFIX = "keycld/"
+
+# suite tasks whose scene is not their domain's default: "<domain>/<task>" -> the domain and the
+# arguments of its `get_model_and_assets` that the task passes
+_SUITE_TASKS = {
+    "cartpole/two_poles": ("cartpole", (("num_poles", 2),)),
+    "cartpole/three_poles": ("cartpole", (("num_poles", 3),)),
+}
 
 
 def _import_quietly(name: str):
@@ -67,10 +75,10 @@ def _to_text(root: ET.Element) -> str:
 
 
 @functools.cache
-def _suite_root(name: str) -> ET.Element:
+def _suite_root(name: str, arguments: tuple[tuple[str, int], ...] = ()) -> ET.Element:
     module = _import_quietly(f"dm_control.suite.{name}")
     try:
-        xml, assets = module.get_model_and_assets()
+        xml, assets = module.get_model_and_assets(**dict(arguments))
     except (AttributeError, TypeError):  # domains that generate their MJCF from arguments in code
         raise ValueError(
             f"dm_control suite domain {name!r} builds its MJCF in code, not from a fixed XML file; give "
@@ -194,8 +202,9 @@ def scene_xml(mjcf: "str | os.PathLike") -> str:
     **Arguments:**
 
     - `mjcf`: a path to an MJCF file, an XML string, the name of a dm_control suite domain
-      (`"acrobot"`, `"cartpole"`, ...), or `"keycld/<name>"` for KeyCLD's variants (see
-      `keycld_scene`).
+      (`"acrobot"`, `"cartpole"`, ...), `"<domain>/<task>"` for a suite task that builds a scene of
+      its own (`"cartpole/two_poles"`, `"cartpole/three_poles"`: the stock cart-pole with a chain of
+      two or three poles), or `"keycld/<name>"` for KeyCLD's variants (see `keycld_scene`).
 
     **Returns:** the XML text. Files the model references (meshes, textures) stay references.
     """
@@ -213,13 +222,19 @@ def scene_xml(mjcf: "str | os.PathLike") -> str:
         return _file_text(pathlib.Path(mjcf))
     if mjcf.startswith(_KEYCLD_PREFIX):
         return keycld_scene(mjcf)
+    if mjcf in _SUITE_TASKS:
+        domain, arguments = _SUITE_TASKS[mjcf]
+        root = copy.deepcopy(_suite_root(domain, arguments))
+        root.set("model", f"{root.get('model', domain)}-{mjcf.split('/')[1].replace('_', '-')}")
+        return _to_text(root)
     if not _is_path_like(mjcf):
         domains = _suite_domains()
         if mjcf in domains:
             return _to_text(copy.deepcopy(_suite_root(mjcf)))
         raise ValueError(
             f"unknown scene {mjcf!r}: not a file, not XML, not a dm_control suite domain "
-            f"({', '.join(domains)}) and not keycld/<{'|'.join(KEYCLD_SCENES)}>"
+            f"({', '.join(domains)}), not a suite task with a scene of its own ({', '.join(_SUITE_TASKS)}) "
+            f"and not keycld/<{'|'.join(KEYCLD_SCENES)}>"
         )
     raise FileNotFoundError(f"MJCF file not found: {mjcf}")
 
