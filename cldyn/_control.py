@@ -323,9 +323,11 @@ class EnergyShaping(AbstractControl):
         if system.input_matrix is None or system.num_inputs == 0:
             raise ValueError("energy shaping needs a system with inputs (an input_matrix)")
         self.system = system
-        self.x_target = check_array("x_target", x_target, (system.size,))
-        self.kp = jnp.asarray(kp, dtype=float)
-        self.kd = jnp.asarray(kd, dtype=float)
+        # the controller computes in the system's precision (a float32 model under 64-bit mode too)
+        dtype = system.mass.matrix().dtype
+        self.x_target = check_array("x_target", x_target, (system.size,)).astype(dtype)
+        self.kp = jnp.asarray(kp, dtype=dtype)
+        self.kd = jnp.asarray(kd, dtype=dtype)
         if limit is not None and not limit > 0:
             raise ValueError(f"limit must be positive, got {limit}")
         self.limit = limit

@@ -7,6 +7,11 @@ from ._augment import (
     restore_keypoints as restore_keypoints,
     transform_images as transform_images,
 )
+from ._control import (
+    FramePolicy as FramePolicy,
+    image_target as image_target,
+    swing_up as swing_up,
+)
 from ._data import (
     Frames as Frames,
     ImageSequences as ImageSequences,

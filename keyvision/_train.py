@@ -191,7 +191,7 @@ def assign_keypoints(model: KeyCLD, keypoints: cldyn.Sequences) -> tuple[KeyCLD,
     order, while the constraints of the dynamics give each keypoint a role (in KeyCLD's cart-pole
     keypoint 0 is the cart, whose height is fixed, and keypoint 1 the pole's end at a fixed
     distance from it). Of every order of the keypoints, the one whose constraint values vary least
-    within the runs, $\sum_j \operatorname{mean}_r \operatorname{Var}_t \Phi_j(x_{r,t})$, is
+    within the runs, $\\sum_j \\operatorname{mean}_r \\operatorname{Var}_t \\Phi_j(x_{r,t})$, is
     applied to the estimator's outputs and the renderer's inputs (`permute`): the autoencoder draws
     the same images, with its keypoints renumbered.
 

@@ -1,5 +1,6 @@
 """Energy shaping (eq. 32) on analytic systems."""
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -99,3 +100,18 @@ def test_energy_shaping_batches_and_differentiates():
     assert u.shape == (16, 2) and bool(jnp.all(jnp.isfinite(u)))
     grad = jax.grad(lambda c: jnp.sum(c(0.0, x[0], xd[0]) ** 2), allow_int=True)
     assert bool(jnp.isfinite(grad(controller).kp))
+
+
+def test_energy_shaping_computes_in_the_systems_precision():
+    # a float32 model (as keyvision's are) under 64-bit mode: the gains and the target follow it,
+    # and the control agrees with the float64 controller of the same system to float32 precision
+    system, joints = cldyn.systems.pendulum()
+    single = jax.tree.map(lambda a: a.astype(jnp.float32) if eqx.is_inexact_array(a) else a, system)
+    target = joints.keypoints(jnp.array([np.pi]))
+    x, xd = joints.to_keypoints(jnp.array([0.3]), jnp.array([0.5]))
+    u64 = cldyn.EnergyShaping(system, target)(0.0, x, xd)
+    controller = cldyn.EnergyShaping(single, target)
+    assert controller.kp.dtype == controller.x_target.dtype == jnp.float32
+    u32 = controller(0.0, x.astype(jnp.float32), xd.astype(jnp.float32))
+    assert u32.dtype == jnp.float32
+    np.testing.assert_allclose(u32, u64, rtol=1e-5)

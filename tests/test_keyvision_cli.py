@@ -10,7 +10,7 @@ import pytest
 
 from keyvision._cli import main
 
-COMMANDS = ("render", "train", "evaluate")
+COMMANDS = ("render", "train", "evaluate", "control")
 VPT_TOL = 1e-12  # a fraction of frames, recomputed from the recorded errors
 
 # command -> (arguments with one invalid value, the option the error must name)
@@ -18,6 +18,7 @@ BAD_ARGUMENTS = {
     "render": (["--scene", "keycld/pendulum", "--out", "{tmp}/r", "--runs", "0"], "--runs"),
     "train": (["--data", "{tmp}/d", "--out", "{tmp}/t", "--width", "-8"], "--width"),
     "evaluate": (["--model", "{tmp}/m", "--data", "{tmp}/d", "--out", "{tmp}/e", "--batch", "x"], "--batch"),
+    "control": (["--model", "{tmp}/m", "--out", "{tmp}/c", "--runs", "0"], "--runs"),
 }
 
 
@@ -62,6 +63,7 @@ def test_a_bad_argument_is_one_error_line_and_creates_nothing(command, tmp_path,
         (["train", "--data", "{tmp}/missing.npz"], "no such file"),
         (["train", "--data", "{tmp}/missing.npz", "--resume", "--overwrite"], "give one"),
         (["evaluate", "--model", "{tmp}/missing", "--data", "{tmp}/missing.npz"], "no such directory"),
+        (["control", "--model", "{tmp}/missing"], "no such directory"),
     ],
 )
 def test_failures_before_any_work_create_nothing(argv, message, tmp_path, capsys):

@@ -1,0 +1,191 @@
+"""`keyvision control`: swing a MuJoCo scene up with energy shaping on a model learnt from images,
+the controller seeing only rendered camera frames (`keyvision.swing_up`).
+
+The target is a frame (`--target target.png`, the model's image size) or, by default, the scene
+rendered in its upright posture. Writes control.json (success, errors, timing), target.png,
+control.gif (the camera view of the first run with the estimated keypoints and the target's drawn)
+and control.png (true joint angles, the learnt energy and the controls over time).
+"""
+
+import argparse
+import json
+
+from cldyn._cli._common import (
+    CommandError,
+    add_command,
+    add_overwrite,
+    input_file,
+    output_directory,
+    positive,
+    seed,
+)
+
+from ._common import load_model, model_files
+
+_RESULTS = ("control.json", "target.png", "control.gif", "control.png")
+_GIF_SCALE = 4
+
+
+def register(subparsers) -> None:
+    """Add `keyvision control`."""
+    parser = add_command(
+        subparsers,
+        "control",
+        help="swing a scene up from camera frames with a learnt model (energy shaping)",
+        description=__doc__,
+    )
+    parser.add_argument("--model", required=True, help="directory written by keyvision train")
+    parser.add_argument("--out", required=True, help="output directory")
+    parser.add_argument("--scene", help="the scene (default: the one the model was trained on)")
+    parser.add_argument("--target", help="target frame, a PNG of the model's size (default: upright)")
+    parser.add_argument(
+        "--observe",
+        choices=("frames", "state"),
+        default="frames",
+        help="what the controller sees: rendered frames, or the true state (for reference)",
+    )
+    parser.add_argument("--runs", type=positive(integer=True), default=1, help="runs from near hanging")
+    parser.add_argument("--duration", type=positive(), default=10.0, help="seconds per run")
+    parser.add_argument("--kp", type=positive(), default=5.0, help="stiffness of the shaped potential")
+    parser.add_argument("--kd", type=positive(allow_zero=True), default=2.0, help="damping injection")
+    parser.add_argument("--tolerance", type=positive(), default=0.05, help="success radius in metres")
+    parser.add_argument("--seed", type=seed, default=0, help="seed of the initial states")
+    add_overwrite(parser, "results")
+    parser.set_defaults(run=run)
+
+
+def run(args: argparse.Namespace) -> int:
+    """Load, swing up, write the results, print one line."""
+    model_files(args.model, "--model")
+    target_file = None if args.target is None else input_file(args.target, "--target")
+    from cldyn._misc import optional_import
+
+    imageio = optional_import("imageio.v3", purpose="keyvision control's GIF")
+    optional_import("matplotlib", purpose="keyvision control's plot")
+    import numpy as np
+
+    import cldyn
+    import keyvision
+    from cldyn._misc import atomic_save, atomic_write
+
+    model, spec = load_model(args.model, "--model")
+    scene = args.scene or spec.get("data", {}).get("scene")
+    if not scene:
+        raise CommandError(f"--model {args.model}: its keyvision.json names no scene; pass --scene")
+    target = None
+    if target_file is not None:
+        try:
+            target = np.asarray(imageio.imread(target_file))[..., :3]
+        except Exception as error:  # imageio raises many kinds for a file that is not an image
+            raise CommandError(f"--target {target_file}: not a readable image ({error})") from None
+        if target.shape != (model.image_size, model.image_size, 3):
+            raise CommandError(
+                f"--target {target_file}: an image of {target.shape[:2]} pixels; the model takes "
+                f"{model.image_size} x {model.image_size}"
+            )
+    if not isinstance(model.dynamics, cldyn.ConstrainedLagrangian):
+        raise CommandError(
+            f"--model {args.model}: energy shaping needs a learnt potential and input matrix "
+            f"(KeyCLD or KeyCLD-NC dynamics), this model's are {type(model.dynamics).__name__}"
+        )
+    out = output_directory(args.out, results=_RESULTS, overwrite=args.overwrite)
+    try:
+        result = keyvision.swing_up(
+            model,
+            scene,
+            observe=args.observe,
+            target=target,
+            kp=args.kp,
+            kd=args.kd,
+            runs=args.runs,
+            duration=args.duration,
+            tolerance=args.tolerance,
+            seed=args.seed,
+            progress_meter=cldyn.TqdmProgressMeter(),
+        )
+    except ValueError as error:
+        raise CommandError(str(error)) from None
+    atomic_save(
+        out / "target.png",
+        lambda temporary: imageio.imwrite(temporary, np.asarray(result["target_frame"]), extension=".png"),
+    )
+    _gif(out / "control.gif", result, imageio, atomic_save)
+    _plot(out / "control.png", result, atomic_save)
+    record = {
+        key: result[key]
+        for key in (
+            "scene",
+            "observe",
+            "kp",
+            "kd",
+            "runs",
+            "duration",
+            "dt",
+            "tolerance",
+            "success_rate",
+            "success",
+            "final_error",
+            "time_to_tolerance",
+            "seconds",
+            "steps_per_second",
+            "real_time_rate",
+        )
+    }
+    record.update(model=str(args.model), target=str(target_file) if target_file else "upright")
+    record["target_keypoints"] = np.asarray(result["target_keypoints"]).tolist()
+    atomic_write(out / "control.json", json.dumps(record, indent=1))
+    reached = [t for t in result["time_to_tolerance"] if t is not None]
+    print(
+        f"swing-up of {scene} from {args.observe} with the model in {args.model}: "
+        f"{sum(result['success'])} of {args.runs} runs within {args.tolerance} m of the target over the "
+        f"last 0.5 s (final error {np.median(result['final_error']):.3f} m median"
+        + (f", reached after {np.median(reached):.2f} s" if reached else "")
+        + f"); {result['steps_per_second']:.0f} control steps/s, real time {result['real_time_rate']:.0f}; "
+        f"wrote {', '.join(_RESULTS)} to {out}"
+    )
+    return 0
+
+
+def _gif(path, result, imageio, atomic_save) -> None:
+    """The first run's camera view, the estimated keypoints and the target's drawn on it (frames
+    only: with `--observe state` the target frame with its keypoints)."""
+    import numpy as np
+
+    import keyvision
+
+    frames = result["frames"][0] if result["frames"] else np.asarray(result["target_frame"])[None]
+    big = np.repeat(np.repeat(frames, _GIF_SCALE, -3), _GIF_SCALE, -2)
+    count = big.shape[0]
+    target = np.broadcast_to(result["target_keypoints"], (count, result["target_keypoints"].shape[-1]))
+    marked = keyvision.draw_keypoints(
+        big, target, radius=2, colors=[(0.2, 1.0, 0.2)] * (target.shape[-1] // 2)
+    )
+    if result["frames"]:
+        marked = keyvision.draw_keypoints(marked, result["x"][0, :count], radius=2)
+    atomic_save(
+        path,
+        lambda temporary: imageio.imwrite(
+            temporary, marked, extension=".gif", duration=1000 * result["dt"], loop=0
+        ),
+    )
+
+
+def _plot(path, result, atomic_save) -> None:
+    from cldyn._misc import optional_import
+
+    plt = optional_import("matplotlib.pyplot", purpose="keyvision control's plot")
+    ts = result["ts"]
+    figure, axes = plt.subplots(4, 1, figsize=(6, 8), sharex=True, layout="constrained")
+    for r in range(result["qpos"].shape[0]):
+        axes[0].plot(ts, result["qpos"][r], linewidth=0.8)
+        axes[1].plot(ts, result["errors"][r], linewidth=0.8)
+        axes[2].plot(ts, result["energy"][r], linewidth=0.8)
+        axes[3].plot(ts, result["u"][r], linewidth=0.8)
+    axes[1].axhline(result["tolerance"], color="k", linestyle="--", linewidth=1)
+    axes[0].set(ylabel="joint positions (MuJoCo)")
+    axes[1].set(ylabel="keypoint error (m)", yscale="log")
+    axes[2].set(ylabel="learnt energy")
+    axes[3].set(ylabel="control", xlabel="time (s)")
+    axes[0].set_title(f"swing-up from {result['observe']}: {result['success_rate']:.0%} of runs")
+    atomic_save(path, lambda temporary: figure.savefig(temporary, dpi=110))
+    plt.close(figure)

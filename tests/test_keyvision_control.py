@@ -1,0 +1,128 @@
+"""Control from camera frames: the policy's state estimate against a closed form, the closed loop
+with MuJoCo in which the policy only ever sees rendered frames, and the renderer setting it relies on."""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import cldyn
+import keyvision
+from keyvision import _control
+from keyvision._cli import main
+
+SIZE = 16
+
+
+def _tiny_pendulum(size: int = SIZE) -> keyvision.KeyCLD:
+    keys = jax.random.split(jax.random.key(0), 3)
+    return keyvision.KeyCLD(
+        keyvision.KeypointEstimator(1, width=4, image_size=size, key=keys[0]),
+        cldyn.keycld_model(2, 1, cldyn.keycld_constraint("pendulum"), key=keys[1], width=8),
+        keyvision.Renderer(1, width=4, image_size=size, key=keys[2]),
+    )
+
+
+@pytest.mark.parametrize("dt", [0.02, 0.01])
+def test_the_velocity_estimate_is_the_tangent_velocity_to_second_order(dt):
+    # a keypoint on a circle about the anchor, at constant angular speed: the projected second-order
+    # backward difference is tangent to the circle exactly, and within O(dt^2) of r w (-sin, cos)
+    policy = keyvision.FramePolicy(_tiny_pendulum(), jnp.array([0.0, 0.4]), dt)
+    radius, speed, angle = 0.4, 3.0, 0.7
+    angles = angle - speed * dt * np.arange(2, -1, -1)
+    memory = jnp.asarray(radius * np.stack([np.cos(angles), np.sin(angles)], axis=1), jnp.float32)
+    x, xd = policy.state(memory)
+    exact = radius * speed * np.array([-np.sin(angle), np.cos(angle)])
+    assert abs(float(jnp.dot(x, xd))) < 1e-6  # tangent: the constraint |x| = const has J = 2 x^T
+    error = float(jnp.linalg.norm(xd - exact))
+    # the backward difference's error is (dt^2 / 3) |x'''| = (dt^2 / 3) r w^3, the projection removes
+    # its radial part
+    assert error < 0.5 * dt**2 * radius * speed**3 and error > 1e-3 * dt**2 * radius * speed**3
+
+
+def test_a_policy_needs_learnt_energy():
+    keys = jax.random.split(jax.random.key(1), 3)
+    node = keyvision.KeyCLD(
+        keyvision.KeypointEstimator(1, width=4, image_size=SIZE, key=keys[0]),
+        cldyn.SecondOrderNeuralODE(2, 1, key=keys[1], width=8),
+        keyvision.Renderer(1, width=4, image_size=SIZE, key=keys[2]),
+    )
+    with pytest.raises(TypeError, match="ConstrainedLagrangian"):
+        keyvision.FramePolicy(node, jnp.zeros(2), 0.02)
+    with pytest.raises(ValueError, match="image_target: the frame has shape"):
+        keyvision.image_target(_tiny_pendulum(), jnp.zeros((8, 8, 3)))
+
+
+@pytest.mark.mujoco
+@pytest.mark.parametrize("scene", ["keycld/pendulum", "keycld/cartpole", "keycld/acrobot"])
+def test_a_smaller_shadow_map_renders_the_same_frames(scene):
+    # the controller renders with a 512-texel shadow map for speed; at 64 x 64 the frames must be
+    # those of the scene's own (2048) that the models were trained on
+    mujoco = pytest.importorskip("mujoco")
+    xml = keyvision._render._scene_xml(scene)
+    frames = []
+    for shadow in (None, _control._SHADOW_SIZE):
+        setup = _control._scene(xml, keyvision.RenderProtocol(shadow_size=shadow), "fixed", None)
+        data = mujoco.MjData(setup.model)
+        data.qpos[:] = np.random.default_rng(0).uniform(-1.0, 1.0, setup.model.nq)
+        mujoco.mj_forward(setup.model, data)
+        renderer = mujoco.Renderer(setup.model, 64, 64)
+        renderer.update_scene(data, camera=setup.camera)
+        frames.append(renderer.render().copy())
+        renderer.close()
+    assert frames[0].std() > 5  # a real picture
+    np.testing.assert_array_equal(frames[0], frames[1])
+
+
+@pytest.mark.mujoco
+def test_the_closed_loop_policy_sees_only_frames(monkeypatch):
+    seen = []
+    step = _control._frame_step
+
+    def spy(*args):
+        seen.append(args)
+        return step(*args)
+
+    monkeypatch.setattr(_control, "_frame_step", spy)
+    result = keyvision.swing_up(_tiny_pendulum(), "keycld/pendulum", runs=2, duration=0.1, seed=3, limit=1.0)
+    samples = 6  # 0.1 s at 50 frames per second, both ends
+    warm_up = 1
+    assert len(seen) == warm_up + 2 * samples
+    for policy, frame, memory in seen:
+        assert isinstance(policy, keyvision.FramePolicy)
+        assert frame.dtype == np.uint8 and frame.shape == (SIZE, SIZE, 3)  # a camera frame, nothing else
+        assert memory.shape == (3, 2)  # the policy's own keypoints
+    assert result["u"].shape == (2, samples, 1) and np.all(np.isfinite(result["u"]))
+    assert result["errors"].shape == (2, samples) and result["qpos"].shape == (2, samples, 1)
+    # the run starts within 0.2 rad of hanging: every keypoint about a pole length below upright
+    assert np.all(result["errors"][:, 0] > 0.9)
+    assert len(result["frames"]) == 1 and result["frames"][0].shape == (samples, SIZE, SIZE, 3)
+    assert result["steps_per_second"] > 0
+
+
+@pytest.mark.mujoco
+def test_the_state_variant_speaks_the_models_coordinates():
+    # observe="state" maps the true keypoints into the model's keypoint frame by an affine fit on
+    # rendered poses; on the shipped pendulum model (whose keypoint sits partway along the rod) the
+    # mapped upright keypoint is the estimator's target within a small fraction of the image
+    model, _ = keyvision.load_model(keyvision._cli._demo.model_directory())
+    result = keyvision.swing_up(model, "keycld/pendulum", observe="state", runs=1, duration=0.04)
+    assert result["frames"] == []
+    hanging = result["x"][0, 0]
+    assert np.linalg.norm(hanging - result["target_keypoints"]) > 0.3  # a pole length apart
+    radius = np.linalg.norm(result["target_keypoints"] - np.array([0.0, 0.0]))
+    assert abs(np.linalg.norm(hanging) - radius) < 0.05  # on the model's circle, not the true one
+    assert abs(radius - np.linalg.norm(result["target_true_keypoints"])) > 0.1
+
+
+@pytest.mark.mujoco
+def test_control_command_refuses_a_target_of_the_wrong_size(tmp_path, capsys):
+    imageio = pytest.importorskip("imageio.v3")
+    target = tmp_path / "target.png"
+    imageio.imwrite(target, np.zeros((32, 32, 3), np.uint8), extension=".png")
+    model = keyvision._cli._demo.model_directory()
+    status = main(["control", "--model", str(model), "--out", str(tmp_path / "out"), "--target", str(target)])
+    _, err = capsys.readouterr()
+    assert status == 2
+    assert "--target" in err and "(32, 32) pixels" in err
+    assert not (tmp_path / "out").exists()
