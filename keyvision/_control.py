@@ -148,7 +148,9 @@ class FramePolicy(eqx.Module):
 
 @eqx.filter_jit
 def _frame_step(policy: FramePolicy, frame, memory):
-    return policy(frame, memory)
+    """One control period, compiled: the control, the new memory and the state the policy used."""
+    u, memory = policy(frame, memory)
+    return u, memory, *policy.state(memory)
 
 
 @eqx.filter_jit
@@ -317,9 +319,8 @@ def swing_up(
                     started = time.perf_counter()
                     if memory is None:
                         memory = _frame_start(policy, frame)
-                    u, memory = _frame_step(policy, frame, memory)
-                    u = np.asarray(u)
-                    x, xd = (np.asarray(a) for a in policy.state(memory))
+                    u, memory, x, xd = _frame_step(policy, frame, memory)
+                    u, x, xd = np.asarray(u), np.asarray(x), np.asarray(xd)
                     if r < keep_frames:
                         frames.append(frame.copy())
                 else:
