@@ -387,7 +387,16 @@ def _simulate(
         controller, step = dfx.StepTo(ts), None
     else:  # a traced ts: constant steps, saved states interpolated between them
         controller, step = dfx.ConstantStepSize(), dt0
+    controller_grid = controller.ts if isinstance(controller, dfx.StepTo) else None
 
+    # When every step ends on a save time (a uniform grid of spacing dt0, or steps onto ts), diffrax
+    # saves each step's end as it goes: no search for the save times inside the step, no interpolation.
+    on_steps = (
+        controller_grid is not None
+        and controller_grid.shape == ts.shape
+        and _ends_exact(solver)
+        and max_steps >= ts.shape[0] - 1
+    )
     solution = dfx.diffeqsolve(
         term,
         wrapped,
@@ -395,7 +404,7 @@ def _simulate(
         ts[-1],
         step,
         (x0, xd0),
-        saveat=dfx.SaveAt(ts=ts),
+        saveat=dfx.SaveAt(t0=True, steps=True) if on_steps else dfx.SaveAt(ts=ts),
         stepsize_controller=controller,
         max_steps=max_steps,
         adjoint=adjoint,
@@ -403,6 +412,8 @@ def _simulate(
     )
     result = dfx.RESULTS.where(result == dfx.RESULTS.successful, solution.result, result)
     xs, xds = solution.ys
+    if on_steps:  # a buffer of max_steps + 1 states, the steps beyond the last one left empty
+        xs, xds = xs[: ts.shape[0]], xds[: ts.shape[0]]
     saves_on_step_ends = not adaptive and (grid is not None or dt0 is None)
     if not (saves_on_step_ends and _ends_exact(solver)):
         # saved states that are interpolated between steps (or by an interpolant that does not end at

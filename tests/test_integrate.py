@@ -244,3 +244,30 @@ def test_rk4_takes_fixed_steps_without_dt0():
     assert float(jnp.max(jnp.abs(fine.x[::2] - coarse.x))) < 1e-5
     with pytest.raises(ValueError, match="RK4 takes fixed steps and has no error estimate"):
         cldyn.simulate(system, x0, xd0, jnp.linspace(0, 1, 5), solver=cldyn.RK4(), rtol=1e-6)
+
+
+FLOAT32_DRIFT = 1e-5  # about 100 ulps of the unit lengths, after 1000 projected steps
+FLOAT32_AGREEMENT = 1e-3  # float32 against float64 after 1 s of a non-chaotic swing (m)
+
+
+def test_float32_simulate_from_a_consistent_float32_state(acrobot):
+    system, joints = acrobot
+    x0, xd0 = joints.to_keypoints(jnp.array([0.8, 0.4]), jnp.array([0.3, -0.2]))
+    to32 = lambda tree: jax.tree.map(
+        lambda v: v.astype(jnp.float32) if eqx.is_inexact_array(v) else v, tree
+    )
+    system32, x32, xd32 = to32(system), x0.astype(jnp.float32), xd0.astype(jnp.float32)
+    # rounding to float32 leaves the state off the manifold by a few ulps: consistent for its dtype
+    assert float(jnp.max(jnp.abs(system32.constraint.velocity(x32, xd32)))) > 0
+    ts = jnp.arange(1001, dtype=jnp.float32) * jnp.float32(0.01)
+    # max_steps = the number of intervals: the float32 grid of spacing dt0 takes one step per interval
+    out = cldyn.simulate(system32, x32, xd32, ts, solver=cldyn.RK4(), dt0=0.01, max_steps=1000)
+    assert out.x.dtype == jnp.float32 and out.result == dfx.RESULTS.successful
+    drift = jnp.abs(jax.vmap(system32.constraint)(out.x) - system32.constraint(x32)[None, :])
+    assert float(jnp.max(drift)) < FLOAT32_DRIFT
+    ref = cldyn.simulate(system, x0, xd0, ts[:101].astype(jnp.float64), solver=cldyn.RK4(), dt0=0.01)
+    assert float(jnp.max(jnp.abs(out.x[:101].astype(jnp.float64) - ref.x))) < FLOAT32_AGREEMENT
+    batched = jax.vmap(
+        lambda x, xd: cldyn.simulate(system32, x, xd, ts, solver=cldyn.RK4(), dt0=0.01).x
+    )(jnp.stack([x32, x32]), jnp.stack([xd32, xd32]))
+    assert batched.dtype == jnp.float32 and bool(jnp.all(batched[1] == out.x))

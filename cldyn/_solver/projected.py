@@ -55,7 +55,7 @@ class _AbstractForwardingSolver(dfx.AbstractWrappedSolver):
 class ProjectedSolver(_AbstractForwardingSolver):
     """Wraps a diffrax solver so that every step ends on the constraint manifold.
 
-    After each step of `solver`, the state is corrected by `projection.correct` (for `Projection`:
+    After each step of `solver`, the state is corrected by `projection.correct_step` (for `Projection`:
     positions onto `Phi(x) = reference`, velocities onto `DPhi(x) xd = 0`), and the step's result
     reports a correction that failed. The terms must be a `DynamicsTerm`. This is what
     `Projection().wrap(solver)` returns and what `simulate` integrates with by default.
@@ -93,7 +93,7 @@ class ProjectedSolver(_AbstractForwardingSolver):
         y1, error, dense_info, solver_state, result = self._inner().step(
             terms, t0, t1, y0, args, solver_state, made_jump
         )
-        x1, xd1, corrected = self.projection.correct(unwrap_term(terms)[0], *y1)
+        x1, xd1, corrected = self.projection.correct_step(unwrap_term(terms)[0], *y1)
         y1 = (x1, xd1)
         # the interpolant ends at the corrected state, so saved step ends lie on the manifold
         dense_info = dict(dense_info, y1=y1)
