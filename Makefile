@@ -27,7 +27,9 @@ test-fast: $(STAMP)
 	$(BIN)/python -m pytest -q -m "not slow"
 
 bench: $(STAMP)
+	$(BIN)/python -m pip install --quiet --no-compile -e ".[bench]"
 	$(BIN)/python benchmarks/acceleration.py
+	$(BIN)/python benchmarks/throughput.py
 
 docs: $(STAMP)
 	NO_MKDOCS_2_WARNING=1 $(BIN)/mkdocs build --strict --site-dir site

@@ -14,8 +14,32 @@ import jax.numpy as jnp
 import lineax as lx
 from jaxtyping import Array, Float
 
-# Unrolling costs O(n^3) traced operations; beyond this size lineax is the better deal.
+# Unrolling costs O(n^3) traced operations (O(n) for a product); beyond this size lineax (a dot) is the
+# better deal.
 UNROLL_MAX = 12
+
+
+def small_matmul(a: Float[Array, "n k"] | Float[Array, " k"], b: Float[Array, "k ..."]) -> Array:
+    """`a @ b` for a small contracted dimension `k`, written out as `k` multiply-adds.
+
+    In the integrator's inner loop every `dot` is a kernel (a library call) of its own, while
+    multiply-adds fuse with the elementwise work around them; on CPU this makes a projected RK4
+    step of the acrobot about twice as fast for one trajectory and no slower under `jax.vmap`.
+    Beyond `UNROLL_MAX` the product is an ordinary `dot`.
+    """
+    k = a.shape[-1]
+    if k > UNROLL_MAX or b.shape[0] != k:
+        return a @ b
+    if a.ndim == 1:
+        column = lambda j: a[j]
+        expand = lambda v: v
+    else:
+        column = lambda j: a[:, j].reshape((a.shape[0],) + (1,) * (b.ndim - 1))
+        expand = lambda v: v[None]
+    out = column(0) * expand(b[0])
+    for j in range(1, k):
+        out = out + column(j) * expand(b[j])
+    return out
 
 
 def small_solve(matrix: Float[Array, "n n"], rhs: Float[Array, "n ..."]) -> Float[Array, "n ..."]:

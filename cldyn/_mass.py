@@ -15,6 +15,7 @@ import numpy as np
 from jaxtyping import Array, Float
 
 from ._custom_types import ArrayInput, Matrix, Scalar, Vector
+from ._linalg import small_matmul
 
 
 class AbstractMass(eqx.Module):
@@ -251,7 +252,7 @@ class ConstantMass(AbstractMass):
     def solve(self, b):
         # M is tiny and shared by every state in a batch: one dense inverse, then a matmul that
         # vectorises, beats a triangular solve per state.
-        return self.inverse() @ b
+        return small_matmul(self.inverse(), b)
 
 
 def assemble_blocks(

@@ -20,7 +20,7 @@ import optimistix as optx
 from jaxtyping import Array, Float
 
 from ._custom_types import Vector
-from ._linalg import SmallDense, small_solve
+from ._linalg import SmallDense, small_matmul, small_solve
 
 if TYPE_CHECKING:
     from ._solver.term import DynamicsTerm
@@ -177,9 +177,9 @@ class Projection(AbstractStabilisation):
         # and measures the update, which a fixed number of iterations does not need.
         lam = jnp.zeros(term.system.num_constraints, dtype=x.dtype)
         for _ in range(self.iterations):
-            y = x + directions @ lam
-            lam = lam - small_solve(term.jacobian(y) @ directions, term.residual(y))
-        x = x + directions @ lam
+            y = x + small_matmul(directions, lam)
+            lam = lam - small_solve(small_matmul(term.jacobian(y), directions), term.residual(y))
+        x = x + small_matmul(directions, lam)
         converged = jnp.max(jnp.abs(term.residual(x)), initial=0.0) <= atol
         result = dfx.RESULTS.where(converged, dfx.RESULTS.successful, dfx.RESULTS.nonlinear_max_steps_reached)
         return x, term.tangent(x, xd), result

@@ -11,7 +11,7 @@ from ._constraint import AbstractConstraint
 from ._custom_types import ArrayInput, Scalar, Vector
 from ._dissipation import AbstractDissipation
 from ._input import AbstractInputMatrix
-from ._linalg import small_solve
+from ._linalg import small_matmul, small_solve
 from ._mass import AbstractMass, JointArmature
 from ._potential import AbstractPotential
 
@@ -270,11 +270,11 @@ class ConstrainedLagrangian(AbstractDynamics):
             f = self._force(x, xd, u)
             return self._mass_solve(x, f[:, None])[:, 0]
         minv_f, minv_jt, jac, curvature = self._terms(x, xd, u)
-        rhs = jac @ minv_f + curvature
+        rhs = small_matmul(jac, minv_f) + curvature
         if target is not None:
             rhs = rhs - target
-        lam = -small_solve(jac @ minv_jt, rhs)
-        return minv_f + minv_jt @ lam
+        lam = -small_solve(small_matmul(jac, minv_jt), rhs)
+        return minv_f + small_matmul(minv_jt, lam)
 
     def multipliers(self, x: ArrayInput, xd: ArrayInput, u: ArrayInput | None = None) -> Float[Array, " n"]:
         """The Lagrange multipliers `lambda` with $M \\ddot x = f + D\\Phi^T \\lambda$ (eq. 19, 22).

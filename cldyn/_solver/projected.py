@@ -20,7 +20,7 @@ class _AbstractForwardingSolver(dfx.AbstractWrappedSolver):
     scan_kind: eqx.AbstractVar[str | None]
 
     def _inner(self) -> dfx.AbstractSolver:
-        if self.scan_kind is None or getattr(self.solver, "scan_kind", None) is not None:
+        if self.scan_kind is None or getattr(self.solver, "scan_kind", True) is not None:
             return self.solver
         return eqx.tree_at(lambda s: s.scan_kind, self.solver, self.scan_kind, is_leaf=lambda v: v is None)
 

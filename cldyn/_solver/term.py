@@ -6,12 +6,11 @@ import diffrax as dfx
 import equinox as eqx
 import jax.numpy as jnp
 import jax.tree_util as jtu
-import lineax as lx
 from jaxtyping import Array, Float
 
 from .._control import AbstractControl
 from .._custom_types import Control, Vector
-from .._linalg import SmallDense
+from .._linalg import small_matmul, small_solve
 from .._stabilisation import AbstractStabilisation, NoStabilisation
 from .._system import AbstractDynamics, ConstrainedLagrangian
 
@@ -128,9 +127,8 @@ class DynamicsTerm(dfx.AbstractTerm):
             return xd
         jac = self.jacobian(x)
         minv_jt = self.mass_solve(jac.T)
-        operator = lx.MatrixLinearOperator(jac @ minv_jt)
-        mu = lx.linear_solve(operator, jac @ xd, SmallDense()).value
-        return xd - minv_jt @ mu
+        mu = small_solve(small_matmul(jac, minv_jt), small_matmul(jac, xd))
+        return xd - small_matmul(minv_jt, mu)
 
 
 def unwrap_term(terms) -> tuple[DynamicsTerm, Any]:
