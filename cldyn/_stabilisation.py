@@ -96,8 +96,8 @@ class Projection(AbstractStabilisation):
     is reported as a failure in the simulation's `result`. Other projections (`cldyn.project_state`
     from an arbitrary guess, states interpolated between steps, RATTLE's SHAKE solve) iterate with
     optimistix's `Newton` until converged, in at most `max_steps` iterations. Velocities: the
-    mass-weighted projection onto `DPhi(x) xd = 0` (a linear solve with lineax). Both projections
-    are differentiable.
+    mass-weighted projection onto `DPhi(x) xd = 0` (one small linear solve). Both projections are
+    differentiable.
 
     **Arguments:**
 
