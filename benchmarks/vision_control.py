@@ -97,6 +97,12 @@ def main() -> None:
             )
             print(rows[-1], flush=True)
         _plot(RESULTS / f"vision_control_{name}.png", results)
+    # rows of scenes not run this time are kept from the previous results (one scene per call fits)
+    previous = RESULTS / "vision_control.json"
+    if previous.is_file():
+        import json
+
+        rows = [row for row in json.loads(previous.read_text())["rows"] if row["scene"] not in models] + rows
     result = {"machine": machine(), "kp": 5.0, "kd": 2.0, "tolerance": 0.05, "rows": rows}
     lines = [
         "# Swing-up from camera frames with models learnt from images",
