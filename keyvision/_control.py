@@ -218,8 +218,10 @@ def swing_up(
     was trained with, and the `FramePolicy` turns the frame into a control, held while MuJoCo steps
     (RK4 at `physics_dt`). MuJoCo's state serves only the renderer and the scoring: a run succeeds when
     every true keypoint is within `tolerance` metres of its place in the upright posture over the last
-    0.5 s. With `observe="state"` the policy gets the true keypoints and velocities mapped into the
-    image frame instead of the frames' estimate: what seeing through the camera costs.
+    0.5 s. With `observe="state"` the policy gets the true keypoints and velocities instead of the
+    frames' estimate, mapped into the model's keypoint frame by an affine fit of the estimated keypoints
+    to the true ones on 200 rendered poses (a learnt keypoint need not sit where the scene's does): what
+    seeing through the camera costs.
 
     **Arguments:**
 
