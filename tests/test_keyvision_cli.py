@@ -188,6 +188,7 @@ def test_render_train_evaluate(tmp_path, capsys):
     movie = imageio.imread(results / "prediction.gif", index=None)
     assert movie.shape[:3] == (6, 4 * 16, 2 * 4 * 16)
     assert np.isfinite(record["keypoint_tracking_r2"]) and record["keypoint_tracking_r2"] <= 1
+    assert all(np.isfinite(e) and e >= 0 for e in record["keypoint_error_px"])
 
 
 @pytest.mark.mujoco
@@ -200,6 +201,8 @@ def test_demo_predicts_new_runs_with_the_shipped_model(tmp_path, capsys):
     record = json.loads((tmp_path / "vpt.json").read_text())
     assert record["runs"] == 2 and record["frames"] == 50
     assert record["keypoint_tracking_r2"] > 0.95
+    # the pole's keypoint follows a point of the pole to about a pixel (an affine fit to MuJoCo's tip)
+    assert len(record["keypoint_error_px"]) == 1 and 0 < record["keypoint_error_px"][0] < 1.5
     assert record["autoencoder"]["vpt"]["mean"] > 0.9
     assert record["autoencoder"]["mse_over_threshold"] < 0.5
     assert record["vpt"]["mean"] > 0.2
