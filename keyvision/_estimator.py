@@ -6,13 +6,12 @@ from collections.abc import Sequence
 import equinox as eqx
 import jax
 import jax.numpy as jnp
-import numpy as np
 from jaxtyping import Array, Float, PRNGKeyArray
 
 from cldyn._misc import check_positive
 from cldyn._nn import linear
 
-from ._keypoints import check_order, spatial_softmax
+from ._keypoints import check_order, spatial_softmax, unpermuted
 from ._unet import Block, UNet, max_pool
 
 
@@ -50,13 +49,7 @@ class AbstractKeypointEstimator(eqx.Module):
 
         `keyvision.assign_keypoints` calls it; the identity order returns the estimator itself, and a
         subclass that does not override it cannot be renumbered (a `NotImplementedError` says so)."""
-        index = check_order(type(self).__name__, order, self.num_keypoints)
-        if np.array_equal(np.asarray(index), np.arange(self.num_keypoints)):
-            return self
-        raise NotImplementedError(
-            f"{type(self).__name__} does not implement permute(order): its keypoints cannot be renumbered "
-            f"to {list(order)}; implement it, or order the constraints as the estimator found the keypoints"
-        )
+        return unpermuted(self, order)
 
 
 class KeypointEstimator(AbstractKeypointEstimator):

@@ -152,3 +152,15 @@ def check_order(owner: str, order: Sequence[int], num_keypoints: int) -> Array:
             f"{owner}.permute: order must be a permutation of 0..{num_keypoints - 1}, got {list(order)}"
         )
     return jnp.asarray(index)
+
+
+def unpermuted(module, order: Sequence[int]):
+    """`module` itself where `order` is the identity; a `NotImplementedError` naming its class
+    otherwise: the default `permute` of a network that cannot renumber its keypoints."""
+    index = check_order(type(module).__name__, order, module.num_keypoints)
+    if np.array_equal(np.asarray(index), np.arange(module.num_keypoints)):
+        return module
+    raise NotImplementedError(
+        f"{type(module).__name__} does not implement permute(order): its keypoints cannot be renumbered "
+        f"to {list(order)}; implement it, or order the constraints as the estimator found the keypoints"
+    )

@@ -6,13 +6,12 @@ from collections.abc import Sequence
 import equinox as eqx
 import jax
 import jax.numpy as jnp
-import numpy as np
 from jaxtyping import Array, Float, PRNGKeyArray
 
 from cldyn._misc import check_positive
 from cldyn._nn import conv2d, linear
 
-from ._keypoints import check_order, gaussian_maps
+from ._keypoints import check_order, gaussian_maps, unpermuted
 from ._unet import Block, UNet, upsample
 
 _CONSTANT_STD = 0.01  # initial scale of the learned constant feature tensor
@@ -44,13 +43,7 @@ class AbstractRenderer(eqx.Module):
 
         The identity order returns the renderer itself; a subclass that does not override it cannot
         be renumbered (a `NotImplementedError` says so)."""
-        index = check_order(type(self).__name__, order, self.num_keypoints)
-        if np.array_equal(np.asarray(index), np.arange(self.num_keypoints)):
-            return self
-        raise NotImplementedError(
-            f"{type(self).__name__} does not implement permute(order): its keypoints cannot be renumbered "
-            f"to {list(order)}; implement it, or order the constraints as the estimator found the keypoints"
-        )
+        return unpermuted(self, order)
 
 
 class Renderer(AbstractRenderer):
