@@ -82,6 +82,7 @@ def scene(name: str, args) -> dict:
             "window",
             "joint_lr",
             "heatmap_weight",
+            "constraint_weight",
             "dynamics_weight",
         ):
             options += [f"--{option.replace('_', '-')}", getattr(args, option)]
@@ -107,6 +108,7 @@ def scene(name: str, args) -> dict:
         "paper_vpt": PAPER_VPT[name],
         "keypoint_tracking_r2": vpt.get("keypoint_tracking_r2"),
         "keypoint_error_px": vpt.get("keypoint_error_px"),
+        "constraint_drift_px": vpt.get("constraint_drift_px"),
         "validation_runs": vpt["runs"],
         "image_size": spec["image_size"],
         "width": spec["width"],
@@ -135,6 +137,7 @@ def main() -> None:
     parser.add_argument("--joint-lr", type=float, default=3e-4)
     parser.add_argument("--heatmap-weight", type=float, default=0.0)
     parser.add_argument("--dynamics-weight", type=float, default=60.0)
+    parser.add_argument("--constraint-weight", type=float, default=10.0)
     parser.add_argument(
         "--model", action="append", default=[], metavar="SCENE=DIR", help="evaluate this model of SCENE"
     )
@@ -151,11 +154,13 @@ def main() -> None:
         "(the autoencoder alone, perfect dynamics); R^2: keypoint tracking (affine map to the true pose, "
         "held out; a pose feature of a second link is not affine in the keypoints, so it reads low on the "
         "acrobot); error: held-out RMS pixels between the keypoints and MuJoCo's after an affine fit, per "
-        "keypoint; training: the stages' wall time as their histories recorded it.",
+        "keypoint; drift: the RMS standard deviation of each constraint's value along a run of estimated "
+        "keypoints, in pixels (0 for keypoints on rigid points of the bodies); training: the stages' wall "
+        "time as their histories recorded it.",
         "",
-        "| scene | VPT mean | median | std | paper | ceiling | R^2 | error (px) | frames | width "
-        "| training (s) | images/s |",
-        "| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |",
+        "| scene | VPT mean | median | std | paper | ceiling | R^2 | error (px) | drift (px) | frames "
+        "| width | training (s) | images/s |",
+        "| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |",
     ]
     for row in rows:
         seconds = sum((s["seconds"] or 0) for s in row["train"]["stages"].values())
@@ -167,7 +172,9 @@ def main() -> None:
         cells += [f"{row['paper_vpt']:.2f}", "-" if ceiling is None else f"{ceiling:.3f}"]
         error = row["keypoint_error_px"]
         cells += ["-" if r2 is None else f"{r2:.3f}"]
-        cells += ["-" if error is None else " / ".join(f"{e:.2f}" for e in error), f"{size}x{size}"]
+        drift = row["constraint_drift_px"]
+        cells += ["-" if error is None else " / ".join(f"{e:.2f}" for e in error)]
+        cells += ["-" if drift is None else " / ".join(f"{e:.2f}" for e in drift), f"{size}x{size}"]
         cells += [str(row["width"]), f"{seconds:.0f}", "-" if rate is None else f"{rate:.1f}"]
         lines.append("| " + " | ".join(cells) + " |")
     write("vision", result, "\n".join(lines) + "\n")

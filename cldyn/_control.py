@@ -364,3 +364,12 @@ class EnergyShaping(AbstractControl):
         if self.limit is not None:
             u = jnp.clip(u, -self.limit, self.limit)
         return u
+
+
+def hinge_extremes(count: int, height: Callable[[np.ndarray], float]) -> tuple[np.ndarray, np.ndarray]:
+    """The angles in `{0, pi}^count` (one per hinge) at which `height(angles)` is lowest and highest
+    (the first in order among equals): a mechanism's hanging and upright postures, found from its
+    geometry rather than from a joint convention."""
+    corners = np.array(np.meshgrid(*([[0.0, np.pi]] * count), indexing="ij")).reshape(count, -1).T
+    heights = [height(corner) for corner in corners]
+    return corners[int(np.argmin(heights))], corners[int(np.argmax(heights))]

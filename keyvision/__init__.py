@@ -45,6 +45,7 @@ from ._keypoints import (
     spatial_softmax as spatial_softmax,
 )
 from ._loss import (
+    ConstraintDrift as ConstraintDrift,
     HeatmapRegulariser as HeatmapRegulariser,
     KeypointDynamics as KeypointDynamics,
     Reconstruction as Reconstruction,

@@ -16,6 +16,7 @@ import numpy as np
 from jaxtyping import Array, Float
 
 import cldyn
+from cldyn._control import hinge_extremes
 from cldyn._misc import check_positive
 
 from ._data import PlanarCamera
@@ -173,17 +174,20 @@ def _postures(mujoco, scene, data, camera: PlanarCamera) -> tuple[np.ndarray, np
     lowest or highest in the image (slides at their reference position)."""
     model = scene.model
     hinges = [j for j in range(model.njnt) if model.jnt_type[j] == _HINGE]
-    heights = {}
-    for corner in (
-        np.array(np.meshgrid(*([[0.0, np.pi]] * len(hinges)), indexing="ij")).reshape(len(hinges), -1).T
-    ):
+
+    def posture(angles):
         qpos = np.array(model.qpos0)
-        for j, angle in zip(hinges, corner):
+        for j, angle in zip(hinges, angles):
             qpos[model.jnt_qposadr[j]] = angle
-        data.qpos[:] = qpos
+        return qpos
+
+    def height(angles):
+        data.qpos[:] = posture(angles)
         mujoco.mj_forward(model, data)
-        heights[float(np.sum(camera.to_image(_true_keypoints(scene, data))[:, 1]))] = qpos
-    return heights[min(heights)], heights[max(heights)]
+        return float(np.sum(camera.to_image(_true_keypoints(scene, data))[:, 1]))
+
+    low, high = hinge_extremes(len(hinges), height)
+    return posture(low), posture(high)
 
 
 def _true_keypoints(scene, data) -> np.ndarray:

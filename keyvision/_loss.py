@@ -82,6 +82,44 @@ class KeypointDynamics(AbstractLoss):
         return self.loss(model.dynamics, keypoints)
 
 
+class ConstraintDrift(AbstractLoss):
+    """The drift of the constraint values of the encoded keypoints along each window of frames.
+
+    Holonomic constraints hold at a constant value along a run (a pole keeps its length, a cart its
+    height), but reconstruction cannot tell keypoints on the bodies from any smooth remapping of
+    them: the renderer learns the inverse, and an estimator may well place a keypoint whose distance
+    to another swells and shrinks by a few per cent as the mechanism turns. Dynamics fitted to such
+    keypoints cannot be those of the rigid mechanism. With $\Phi$ the constraints of
+    `model.dynamics` and $x_{r,i}$ the keypoints of frame $i$ of window $r$,
+
+    $$L_\Phi = \operatorname{mean}_{r, c}\ \operatorname{var}_i\ \Phi_c(x_{r,i}),$$
+
+    a squared length in the image frame (cldyn's constraints are distances and coordinates), zero
+    exactly when every constraint value is constant along every window, whatever that value. Only
+    the Jacobian of the constraints enters the dynamics (eq. 6), and this term asks no more: the
+    lengths stay free. Needs windows of at least two frames and dynamics with constraints.
+
+    !!! example
+
+        ```python
+        loss = keyvision.Reconstruction() + 10.0 * keyvision.ConstraintDrift()
+        ```
+    """
+
+    def __call__(self, model: KeyCLD, batch: ImageSequences) -> Array:
+        constraint = getattr(model.dynamics, "constraint", None)
+        if constraint is None:
+            raise TypeError(
+                "ConstraintDrift needs dynamics with constraints (a cldyn.ConstrainedLagrangian with a "
+                f"constraint), got {type(model.dynamics).__name__} without one"
+            )
+        x = model.encode(_images(model, batch), batch.transforms)
+        if x.ndim != 3 or x.shape[1] < 2:
+            raise ValueError(f"ConstraintDrift: needs windows of at least 2 frames, got keypoints {x.shape}")
+        values = jax.vmap(jax.vmap(constraint))(x)  # (windows, frames, constraints)
+        return jnp.mean(jnp.var(values, axis=1))
+
+
 class HeatmapRegulariser(AbstractLoss):
     """Binary cross-entropy of each heatmap against a Gaussian blob at its own keypoint.
 

@@ -29,7 +29,7 @@ from cldyn._misc import atomic_write, check_positive
 
 from ._augment import Augment
 from ._data import ImageSequences, as_images
-from ._loss import HeatmapRegulariser, KeypointDynamics, Reconstruction
+from ._loss import ConstraintDrift, HeatmapRegulariser, KeypointDynamics, Reconstruction
 from ._model import KeyCLD, parameter_dtype
 
 _SCHEMA = "keyvision.Train/1"
@@ -72,6 +72,10 @@ class Schedule:
       frame, whatever the frame rate, and one weight serves every scene.
     - `heatmap_weight`: the weight of the heatmap regulariser (0 leaves it out, as the FC estimator
       needs).
+    - `constraint_weight`: the weight of `keyvision.ConstraintDrift` in the joint stages (0 leaves
+      it out; dynamics without constraints never have it): the variance of the constraint values of
+      the keypoints along each window, a squared length in the image frame like `h^4 L_d`. It keeps
+      the keypoints on rigid points of the bodies, which reconstruction alone does not.
     - `augment`: show the estimator every frame of stages (a) and (c) under a random dihedral
       transform (`keyvision.Augment`), its keypoints mapped back: trains an equivariant estimator.
     - `learning_rate`: Adam's peak learning rate for the networks in stage (a) (after element-wise
@@ -107,6 +111,7 @@ class Schedule:
     dynamics_loss: cldyn.AbstractLoss = cldyn.Collocation()
     dynamics_weight: float = 60.0
     heatmap_weight: float = 0.1
+    constraint_weight: float = 10.0
     augment: bool = False
     learning_rate: float = 1e-3
     dynamics_learning_rate: float = 1e-3
@@ -130,7 +135,7 @@ class Schedule:
                 "Schedule: final_learning_rate is a fraction of the peak, at most 1; got "
                 f"{self.final_learning_rate}"
             )
-        for name in ("dynamics_weight", "refine_weight", "heatmap_weight"):
+        for name in ("dynamics_weight", "refine_weight", "heatmap_weight", "constraint_weight"):
             check_positive(f"Schedule: {name}", getattr(self, name), allow_zero=True)
         if not isinstance(self.augment, bool):
             raise TypeError(f"Schedule: augment must be True or False, got {self.augment!r}")
@@ -323,7 +328,8 @@ def train(
        (`keyvision.encode_sequences`) and the dynamics model is fitted to the keypoints with
        `schedule.dynamics_loss` (collocation, eq. 11-13: seconds, no images involved).
     3. `"joint"`: everything on windows of `schedule.window` frames with
-       $L = L_r + \\lambda L_d$ (plus the regulariser), $L_d$ on the encoded keypoints.
+       $L = L_r + \\lambda L_d$ (plus the regularisers: heatmaps and `keyvision.ConstraintDrift`),
+       $L_d$ on the encoded keypoints.
     4. `"refit"`: the frames are encoded again and the dynamics alone are fitted to the new
        keypoints with `schedule.refit_loss` (multiple shooting by default).
 
@@ -383,6 +389,9 @@ def train(
     images_loss = Reconstruction()
     if schedule.heatmap_weight > 0:
         images_loss = images_loss + schedule.heatmap_weight * HeatmapRegulariser()
+    windows_loss = images_loss
+    if schedule.constraint_weight > 0 and getattr(model.dynamics, "constraint", None) is not None:
+        windows_loss = windows_loss + schedule.constraint_weight * ConstraintDrift()
     stages = {}
 
     def frames_batching(batch_size: int, length: int) -> cldyn.AbstractBatching:
@@ -429,7 +438,7 @@ def train(
                 else (refine_loss, schedule.refine_weight)
             )
             stages[joint] = cldyn.fit(
-                model, data, loss=images_loss + weight * data.dt**4 * KeypointDynamics(dynamics_loss),
+                model, data, loss=windows_loss + weight * data.dt**4 * KeypointDynamics(dynamics_loss),
                 steps=schedule.joint_steps, key=_stage_key(key, joint),
                 optimizer=_adam(schedule, schedule.joint_learning_rate, schedule.joint_steps),
                 batching=frames_batching(schedule.joint_batch, schedule.window),

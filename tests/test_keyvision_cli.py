@@ -189,6 +189,13 @@ def test_render_train_evaluate(tmp_path, capsys):
     assert movie.shape[:3] == (6, 4 * 16, 2 * 4 * 16)
     assert np.isfinite(record["keypoint_tracking_r2"]) and record["keypoint_tracking_r2"] <= 1
     assert all(np.isfinite(e) and e >= 0 for e in record["keypoint_error_px"])
+    # the constraint drift: the pendulum's one constraint is the keypoint's distance from the image
+    # centre (Anchor(0)); its standard deviation along the validation run, in pixels of 16
+    trained, _ = keyvision.load_model(model)
+    keypoints = np.asarray(trained.encode(frames.frames[1].astype(np.float32) / 255), dtype=float)
+    expected = np.std(np.linalg.norm(keypoints, axis=-1)) * 16 / 2
+    (drift,) = record["constraint_drift_px"]
+    assert drift == pytest.approx(expected, rel=1e-3, abs=1e-6)
 
 
 @pytest.mark.mujoco

@@ -174,6 +174,62 @@ def test_heatmap_regulariser_closed_form():
     assert all(bool(jnp.all(jnp.isfinite(g))) for g in jax.tree.leaves(eqx.filter(grads, eqx.is_array)))
 
 
+class _Readout(keyvision.AbstractKeypointEstimator):
+    """Reads its keypoints off the first pixels of the image: coordinate `j` is `(pixel_j - 128) / 100`,
+    pixel `j` being the red value (0..255) of column `j` of row 0."""
+
+    num_keypoints: int = 2
+    image_size: int = SIZE
+
+    def __call__(self, image):
+        values = jnp.round(image[0, : 2 * self.num_keypoints, 0] * 255)
+        return ((values - 128) / 100).reshape(self.num_keypoints, 2)
+
+
+def _readout_frames(keypoints):
+    """uint8 frames that `_Readout` reads as `keypoints` (R, T, 2K), multiples of 0.01 in [-1.28, 1.27]."""
+    pixels = np.round(np.asarray(keypoints) * 100 + 128).astype(np.uint8)
+    frames = np.zeros((*pixels.shape[:2], SIZE, SIZE, 3), np.uint8)
+    frames[:, :, 0, : pixels.shape[-1], 0] = pixels
+    return frames
+
+
+def test_constraint_drift_is_the_variance_of_the_constraint_values_along_each_window():
+    # cart-pole keypoints: the cart at (c, y), the pole's tip at distance r; window 0 is rigid (its
+    # cart keeps its height, its pole its length: it scores only the rounding to the readout's grid),
+    # window 1 has both drift
+    angles = np.array([0.0, 0.4, 0.9, 1.5, 2.2])
+    cart_x = np.array([-0.3, -0.2, 0.0, 0.1, 0.25])
+    heights = np.array([[0.1] * 5, [0.1, 0.12, 0.08, 0.1, 0.15]])
+    lengths = np.array([[0.5] * 5, [0.5, 0.55, 0.45, 0.6, 0.5]])
+    cart = np.stack([np.broadcast_to(cart_x, (2, 5)), heights], axis=-1)
+    tip = cart + lengths[..., None] * np.stack([np.sin(angles), np.cos(angles)], axis=-1)
+    keypoints = np.round(np.concatenate([cart, tip], axis=-1), 2)  # on the readout's 0.01 grid
+    cart, tip = keypoints[..., :2], keypoints[..., 2:]
+    values = np.stack([cart[..., 1], np.linalg.norm(tip - cart, axis=-1)], axis=-1)  # (2, 5, 2)
+    expected = np.mean(np.var(values, axis=1))
+    keys = jax.random.split(jax.random.key(5))
+    model = keyvision.KeyCLD(
+        _Readout(),
+        cldyn.keycld_model(4, 1, cldyn.keycld_constraint("cartpole"), key=keys[0], width=8),
+        keyvision.Renderer(2, width=WIDTH, image_size=SIZE, key=keys[1]),
+    )
+    batch = keyvision.ImageSequences(_readout_frames(keypoints), np.zeros((2, 5, 1), np.float32), DT)
+    assert np.allclose(np.asarray(model.encode(batch.images())), keypoints, atol=1e-6)
+    assert keyvision.ConstraintDrift()(model, batch) == pytest.approx(expected, rel=1e-5)
+    assert np.var(values[1], axis=0).min() > 1e-4  # window 1 drifts in both constraints
+    rigid = keyvision.ImageSequences(_readout_frames(keypoints[:1]), np.zeros((1, 5, 1), np.float32), DT)
+    drift = float(keyvision.ConstraintDrift()(model, rigid))  # the 0.01 grid's rounding only
+    assert drift == pytest.approx(np.mean(np.var(values[:1], axis=1)), rel=1e-4) and drift < 1e-5
+    # dynamics without constraints have nothing to keep; single frames have no drift to measure
+    free = eqx.tree_at(lambda m: m.dynamics, model, cldyn.keycld_model(4, 1, None, key=keys[0], width=8))
+    with pytest.raises(TypeError, match="ConstraintDrift needs dynamics with constraints"):
+        keyvision.ConstraintDrift()(free, batch)
+    single = keyvision.ImageSequences(_readout_frames(keypoints[:, :1]), np.zeros((2, 1, 1), np.float32), DT)
+    with pytest.raises(ValueError, match="at least 2 frames"):
+        keyvision.ConstraintDrift()(model, single)
+
+
 # -- training ----------------------------------------------------------------------------------------
 
 RUNS, SAMPLES = 16, 16

@@ -7,7 +7,7 @@ import equinox as eqx
 import jax.numpy as jnp
 import numpy as np
 
-from .._control import EnergyShaping
+from .._control import EnergyShaping, hinge_extremes
 from .._data import Sequences
 from .._misc import atomic_save, check_positive, optional_import
 from .._progress import AbstractProgressMeter, NoProgressMeter
@@ -84,23 +84,20 @@ def closed_loop(
 
 def _postures(bridge: MujocoModel, hinge: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """`(hanging, upright)` joint positions: every hinge at the angle that puts the keypoints lowest or
-    highest (slides at zero), found from the geometry rather than from a joint convention. `hinge`
-    marks the hinges among the joints."""
+    highest (slides at zero). `hinge` marks the hinges among the joints."""
     hinges = [int(j) for j in np.flatnonzero(hinge)]
-    best = {}
-    for angles in (
-        np.array(np.meshgrid(*([[0.0, np.pi]] * len(hinges)), indexing="ij")).reshape(len(hinges), -1).T
-    ):
+
+    def posture(angles):
         q = np.zeros(len(bridge.joint_names))
         q[hinges] = angles
-        height = float(np.sum(np.asarray(bridge.joints.keypoints(jnp.asarray(q))).reshape(-1, 2)[:, 1]))
-        best.setdefault("low", (height, q))
-        best.setdefault("high", (height, q))
-        if height < best["low"][0]:
-            best["low"] = (height, q)
-        if height > best["high"][0]:
-            best["high"] = (height, q)
-    return best["low"][1], best["high"][1]
+        return q
+
+    def height(angles):
+        keypoints = np.asarray(bridge.joints.keypoints(jnp.asarray(posture(angles))))
+        return float(np.sum(keypoints.reshape(-1, 2)[:, 1]))
+
+    low, high = hinge_extremes(len(hinges), height)
+    return posture(low), posture(high)
 
 
 def swing_up(

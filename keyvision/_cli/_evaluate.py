@@ -137,6 +137,19 @@ def _keypoint_error(validation, estimated) -> list[float]:
     return (np.sqrt(np.mean(np.sum(residual**2, axis=-1), axis=0)) * size / 2).tolist()
 
 
+def _constraint_drift(model, estimated, size: int) -> list[float] | None:
+    """Per constraint of the dynamics, the RMS over runs of the standard deviation of its value along
+    each run of estimated keypoints, in pixels: how far the keypoints are from rigid points of the
+    bodies (0 when each pole keeps its length), from the frames alone, no ground truth needed."""
+    constraint = getattr(model.dynamics, "constraint", None)
+    if constraint is None:
+        return None
+    import jax
+
+    values = np.asarray(jax.jit(jax.vmap(jax.vmap(constraint)))(estimated))  # (runs, frames, constraints)
+    return (np.sqrt(np.mean(np.var(values, axis=1), axis=0)) * size / 2).tolist()
+
+
 def report(model, validation, out, *, batch: int = 8, strip_run: int = 0) -> tuple[dict, str]:
     """Predict every run of `validation` (`keyvision.Frames`), score the VPT, write mse.png,
     strip.png and prediction.gif to `out`; returns the record for vpt.json and a summary line."""
@@ -187,6 +200,9 @@ def report(model, validation, out, *, batch: int = 8, strip_run: int = 0) -> tup
         )
     if "keypoints" in validation.extras and validation.extras["keypoints"].shape[-1] == estimated.shape[-1]:
         record["keypoint_error_px"] = _keypoint_error(validation, estimated)
+    drift = _constraint_drift(model, estimated, validation.image_size[0])
+    if drift is not None:
+        record["constraint_drift_px"] = drift
     _plot_mse(out / "mse.png", validation.ts, mse, threshold)
     _strip(out / "strip.png", images[strip_run], predicted[strip_run])
     pick = (images, predicted, estimated, predicted_keypoints)
@@ -206,6 +222,13 @@ def report(model, validation, out, *, batch: int = 8, strip_run: int = 0) -> tup
             + ", ".join(f"{e:.2f}" for e in record["keypoint_error_px"])
             + " px"
             if "keypoint_error_px" in record
+            else ""
+        )
+        + (
+            "; constraint drift along a run "
+            + ", ".join(f"{e:.2f}" for e in record["constraint_drift_px"])
+            + " px"
+            if "constraint_drift_px" in record
             else ""
         )
         + f"; wrote {', '.join(_RESULTS)} to {out}"

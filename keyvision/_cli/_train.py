@@ -128,6 +128,13 @@ def register(subparsers) -> None:
         help="weight of the heatmap regulariser (0 leaves it out)",
     )
     parser.add_argument(
+        "--constraint-weight",
+        type=positive(allow_zero=True),
+        default=default.constraint_weight,
+        help="weight of the constraint drift (the variance of the keypoints' constraint values along "
+        "each window) in the joint stages; 0 leaves it out",
+    )
+    parser.add_argument(
         "--augment",
         action="store_true",
         help="show the estimator each frame turned and mirrored at random (dihedral augmentation)",
@@ -253,6 +260,7 @@ def run(args: argparse.Namespace) -> int:
         dynamics_weight=args.dynamics_weight,
         refine_weight=args.refine_weight,
         heatmap_weight=args.heatmap_weight,
+        constraint_weight=args.constraint_weight,
         augment=args.augment,
     )
     spec.update(
