@@ -45,7 +45,7 @@ def scene(name: str, model_dir: pathlib.Path, data: pathlib.Path, steps: int) ->
     frames = keyvision.Frames.load(data / "frames.npz" if data.is_dir() else data)
     train, validation = frames.split()
     encode = eqx.filter_jit(lambda m, z: jax.vmap(m.encode)(z))
-    decode = eqx.filter_jit(jax.vmap(model.decode))
+    decode = eqx.filter_jit(lambda m, x: jax.vmap(m.decode)(x))
 
     def encoded(part):
         images = part.images(np.float32)
@@ -82,7 +82,7 @@ def scene(name: str, model_dir: pathlib.Path, data: pathlib.Path, steps: int) ->
         error = np.linalg.norm((predicted - x).reshape(*x.shape[:2], -1, 2), axis=-1).mean(axis=(0, 2))
         if source == "mujoco":  # into the renderer's frame
             predicted = np.concatenate([predicted, np.ones((*predicted.shape[:2], 1))], axis=-1) @ affine
-        drawn = np.stack([np.asarray(decode(jnp.asarray(run, jnp.float32))) for run in predicted])
+        drawn = np.stack([np.asarray(decode(model, jnp.asarray(run, jnp.float32))) for run in predicted])
         vpt = np.asarray(keyvision.valid_prediction_time(drawn, images, threshold=threshold))
         size = frames.image_size[0]
         return {
