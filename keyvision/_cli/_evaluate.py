@@ -217,19 +217,13 @@ def report(model, validation, out, *, batch: int = 8, strip_run: int = 0) -> tup
             if "keypoint_tracking_r2" in record
             else ""
         )
-        + (
-            "; keypoint error after an affine fit "
-            + ", ".join(f"{e:.2f}" for e in record["keypoint_error_px"])
-            + " px"
-            if "keypoint_error_px" in record
-            else ""
-        )
-        + (
-            "; constraint drift along a run "
-            + ", ".join(f"{e:.2f}" for e in record["constraint_drift_px"])
-            + " px"
-            if "constraint_drift_px" in record
-            else ""
+        + "".join(
+            f"; {label} " + ", ".join(f"{e:.2f}" for e in record[name]) + " px"
+            for name, label in (
+                ("keypoint_error_px", "keypoint error after an affine fit"),
+                ("constraint_drift_px", "constraint drift along a run"),
+            )
+            if name in record
         )
         + f"; wrote {', '.join(_RESULTS)} to {out}"
     )
