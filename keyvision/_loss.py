@@ -89,10 +89,10 @@ class ConstraintDrift(AbstractLoss):
     height), but reconstruction cannot tell keypoints on the bodies from any smooth remapping of
     them: the renderer learns the inverse, and an estimator may well place a keypoint whose distance
     to another swells and shrinks by a few per cent as the mechanism turns. Dynamics fitted to such
-    keypoints cannot be those of the rigid mechanism. With $\Phi$ the constraints of
+    keypoints cannot be those of the rigid mechanism. With $\\Phi$ the constraints of
     `model.dynamics` and $x_{r,i}$ the keypoints of frame $i$ of window $r$,
 
-    $$L_\Phi = \operatorname{mean}_{r, c}\ \operatorname{var}_i\ \Phi_c(x_{r,i}),$$
+    $$L_\\Phi = \\operatorname{mean}_{r, c}\\ \\operatorname{var}_i\\ \\Phi_c(x_{r,i}),$$
 
     a squared length in the image frame (cldyn's constraints are distances and coordinates), zero
     exactly when every constraint value is constant along every window, whatever that value. Only
