@@ -41,6 +41,35 @@ def _cli(*argv) -> None:
         raise SystemExit(f"keyvision {argv[0]} failed with status {status}")
 
 
+# the options of `keyvision train` that make the CPU recipe of docs/images.md, with its values
+RECIPE = {
+    "width": (int, 16),
+    "autoencoder_steps": (int, 3000),
+    "autoencoder_batch": (int, 16),
+    "dynamics_steps": (int, 2000),
+    "joint_steps": (int, 600),
+    "joint_batch": (int, 4),
+    "refit_steps": (int, 2000),
+    "rounds": (int, 2),
+    "window": (int, 10),
+    "joint_lr": (float, 3e-4),
+    "heatmap_weight": (float, 0.0),
+    "dynamics_weight": (float, 60.0),
+    "constraint_weight": (float, 10.0),
+}
+
+
+def add_recipe(parser: argparse.ArgumentParser, **defaults) -> None:
+    """Add the recipe's options to a benchmark's parser (`defaults` overrides some of its values)."""
+    for name, (kind, default) in RECIPE.items():
+        parser.add_argument(f"--{name.replace('_', '-')}", type=kind, default=defaults.get(name, default))
+
+
+def recipe_options(args) -> list:
+    """The recipe's options as `keyvision train` arguments."""
+    return [item for name in RECIPE for item in (f"--{name.replace('_', '-')}", getattr(args, name))]
+
+
 def _images_per_second(stages: dict, schedule: dict) -> float | None:
     frames = 0
     seconds = 0.0
@@ -70,22 +99,7 @@ def scene(name: str, args) -> dict:
     if not trained.is_file():
         if given is not None:
             raise SystemExit(f"--model {name}={given}: no model.eqx there")
-        options = ["--data", data, "--out", model, "--width", args.width, "--seed", args.seed]
-        for option in (
-            "autoencoder_steps",
-            "autoencoder_batch",
-            "dynamics_steps",
-            "joint_steps",
-            "joint_batch",
-            "refit_steps",
-            "rounds",
-            "window",
-            "joint_lr",
-            "heatmap_weight",
-            "constraint_weight",
-            "dynamics_weight",
-        ):
-            options += [f"--{option.replace('_', '-')}", getattr(args, option)]
+        options = ["--data", data, "--out", model, "--seed", args.seed, *recipe_options(args)]
         resume = ["--resume"] if (model / "keyvision.json").is_file() else []
         _cli("train", *options, *resume)
     train_seconds = time.perf_counter() - started
@@ -124,20 +138,8 @@ def main() -> None:
     parser.add_argument("--scenes", nargs="+", default=["pendulum", "cartpole", "acrobot"])
     parser.add_argument("--out", default=str(ROOT / "runs" / "bench-vision"))
     parser.add_argument("--runs", type=int, default=500)
-    parser.add_argument("--width", type=int, default=16)
     parser.add_argument("--seed", type=int, default=0)
-    parser.add_argument("--autoencoder-steps", type=int, default=3000)
-    parser.add_argument("--autoencoder-batch", type=int, default=16)
-    parser.add_argument("--dynamics-steps", type=int, default=2000)
-    parser.add_argument("--joint-steps", type=int, default=600)
-    parser.add_argument("--joint-batch", type=int, default=4)
-    parser.add_argument("--refit-steps", type=int, default=2000)
-    parser.add_argument("--rounds", type=int, default=1)
-    parser.add_argument("--window", type=int, default=10)
-    parser.add_argument("--joint-lr", type=float, default=3e-4)
-    parser.add_argument("--heatmap-weight", type=float, default=0.0)
-    parser.add_argument("--dynamics-weight", type=float, default=60.0)
-    parser.add_argument("--constraint-weight", type=float, default=10.0)
+    add_recipe(parser)
     parser.add_argument(
         "--model", action="append", default=[], metavar="SCENE=DIR", help="evaluate this model of SCENE"
     )

@@ -37,6 +37,12 @@ from ._files import (
     model_from_spec as model_from_spec,
     save_model as save_model,
 )
+from ._identify import (
+    ImageIdentification as ImageIdentification,
+    JointStructure as JointStructure,
+    identify as identify,
+    joint_structure as joint_structure,
+)
 from ._keypoints import (
     frame_to_pixel as frame_to_pixel,
     gaussian_maps as gaussian_maps,
@@ -51,7 +57,7 @@ from ._loss import (
     Reconstruction as Reconstruction,
 )
 from ._model import KeyCLD as KeyCLD
-from ._render import RenderProtocol as RenderProtocol, render as render
+from ._render import RenderProtocol as RenderProtocol, render as render, render_poses as render_poses
 from ._renderer import (
     AbstractRenderer as AbstractRenderer,
     Renderer as Renderer,

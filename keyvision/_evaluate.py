@@ -4,6 +4,8 @@ diagnostics of learned keypoints against the ground truth rendered with the fram
 from collections.abc import Sequence
 
 import diffrax as dfx
+import equinox as eqx
+import jax
 import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Float
@@ -307,3 +309,25 @@ def draw_keypoints(
 
 
 _PALETTE = ((1.0, 0.0, 0.0), (0.0, 0.8, 1.0), (1.0, 1.0, 0.0), (0.0, 1.0, 0.0), (1.0, 0.0, 1.0))
+
+
+def predict_runs(model, images, controls, dt: float, batch: int = 8) -> tuple[np.ndarray, np.ndarray]:
+    """Every run's predicted keypoints and frames, `batch` runs per compiled call (the last call
+    padded to the same shape)."""
+
+    @eqx.filter_jit
+    @jax.vmap
+    def predict(z, u):
+        keypoints = predict_keypoints(model, z, u, dt)
+        return keypoints, model.decode(keypoints)
+
+    runs = images.shape[0]
+    batch = min(batch, runs)
+    parts = []
+    for start in range(0, runs, batch):
+        z, u = images[start : start + batch], controls[start : start + batch]
+        missing = batch - z.shape[0]
+        if missing:
+            z, u = (np.concatenate([a, np.repeat(a[-1:], missing, axis=0)]) for a in (z, u))
+        parts.append([np.asarray(a)[: batch - missing] for a in predict(z, u)])
+    return tuple(np.concatenate(arrays) for arrays in zip(*parts))

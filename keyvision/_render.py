@@ -396,3 +396,71 @@ def _render(setup: dict, seed: int, workers: int | None, progress_meter) -> Fram
         camera=PlanarCamera(scene.homography, scene.basis),
         info=info,
     )
+
+
+def render_poses(
+    scene: "str | os.PathLike",
+    qpos: "np.ndarray",
+    *,
+    camera: str | int = "fixed",
+    image_size: int = 64,
+    keypoints: Sequence[str] | None = None,
+) -> dict[str, np.ndarray]:
+    """Render a scene in given joint positions, with MuJoCo's potential energy of each pose.
+
+    For sequences of poses chosen by hand (a link turned through a full circle, a cart moved along
+    its rail) rather than simulated runs: the learnt potential of a model along them can be set
+    beside the true one (the KeyCLD paper's figures 8-12). Rendered as `keyvision.render` renders,
+    in this process, nothing cached.
+
+    **Arguments:**
+
+    - `scene`: what `keyvision.render` accepts (`"keycld/pendulum"`, an MJCF, ...).
+    - `qpos`: `(N, nq)` joint positions, MuJoCo's `qpos` layout.
+    - `camera`, `keypoints`: as in `keyvision.render`.
+    - `image_size`: the side of the square frames in pixels.
+
+    **Returns:** a dict with `frames` `(N, H, W, 3)` uint8, `keypoints` `(N, 2K)` the ground-truth
+    keypoints in metres in the plane of motion (as `keyvision.render` stores them) and `potential`
+    `(N,)` MuJoCo's potential energy (gravity and springs) in joules.
+
+    !!! example
+
+        ```python
+        angles = np.linspace(0, 2 * np.pi, 73)
+        poses = keyvision.render_poses("keycld/pendulum", angles[:, None])
+        ```
+    """
+    check_positive("image_size", image_size, integer=True)
+    if keypoints is not None:
+        keypoints = (keypoints,) if isinstance(keypoints, str) else tuple(keypoints)
+    mujoco = _mujoco()
+    protocol = RenderProtocol(runs=1, frames=1, validation_runs=0, image_size=image_size)
+    setup = _scene(_scene_xml(scene), protocol, camera, keypoints)
+    model = setup.model
+    qpos = np.asarray(qpos, dtype=float)
+    if qpos.ndim != 2 or qpos.shape[1] != model.nq:
+        raise ValueError(f"render_poses: qpos must be (N, {model.nq}) for this scene, got {qpos.shape}")
+    if not np.all(np.isfinite(qpos)):
+        raise ValueError("render_poses: qpos has NaN or infinite entries")
+    model.opt.enableflags |= int(mujoco.mjtEnableBit.mjENBL_ENERGY)
+    data = mujoco.MjData(model)
+    renderer = mujoco.Renderer(model, image_size, image_size)
+    out = {
+        "frames": np.zeros((len(qpos), image_size, image_size, 3), np.uint8),
+        "keypoints": np.zeros((len(qpos), 2 * len(setup.keypoints))),
+        "potential": np.zeros(len(qpos)),
+    }
+    try:
+        for i, pose in enumerate(qpos):
+            data.qpos[:] = pose
+            data.qvel[:] = 0.0
+            mujoco.mj_forward(model, data)
+            out["potential"][i] = data.energy[0]
+            points = [setup.basis @ point.world(data) for point in setup.keypoints]
+            out["keypoints"][i] = np.concatenate(points)
+            renderer.update_scene(data, camera=setup.camera)
+            out["frames"][i] = renderer.render()
+    finally:
+        renderer.close()
+    return out

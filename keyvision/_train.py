@@ -34,6 +34,7 @@ from ._model import KeyCLD, parameter_dtype
 
 _SCHEMA = "keyvision.Train/1"
 _STAGES = ("autoencoder", "dynamics", "joint")
+ORDER_NAME = "keypoint-order.json"  # the order of `assign_keypoints` after stage (a)
 _ENCODE_FRAMES = 256  # frames per call when encoding a dataset: bounds the memory of the activations
 
 
@@ -279,6 +280,16 @@ def stage_names(round_: int) -> tuple[str, str]:
     return f"joint{suffix}", f"refit{suffix}"
 
 
+def stages_run(schedule: dict) -> list[str]:
+    """The names of the stages that a schedule (`Schedule.describe()`) runs, in order."""
+    names = [name for name in ("autoencoder", "dynamics") if schedule.get(f"{name}_steps")]
+    for round_ in range(1, int(schedule.get("rounds", 1)) + 1):
+        joint, refit = stage_names(round_)
+        names += [joint] if schedule.get("joint_steps") else []
+        names += [refit] if schedule.get("refit_steps") else []
+    return names
+
+
 def _stage_key(key, stage: str):
     # the first three stages keep the keys they always had (a split of `key` in three); the others
     # fold their number into it
@@ -411,6 +422,8 @@ def train(
     if schedule.dynamics_steps:
         keypoints = encode_sequences(model, data)
         model, order = assign_keypoints(model, keypoints)
+        if out is not None:  # what `keyvision.load_model(..., stage="dynamics")` needs to rebuild stage (b)
+            atomic_write(out / ORDER_NAME, json.dumps({"keypoint_order": list(order)}))
         index = np.asarray([2 * k + c for k in order for c in (0, 1)])
         keypoints = cldyn.Sequences(keypoints.x[..., index], keypoints.u, keypoints.dt)
         stages["dynamics"] = cldyn.fit(

@@ -10,7 +10,7 @@ import pytest
 
 from keyvision._cli import main
 
-COMMANDS = ("render", "train", "evaluate", "control")
+COMMANDS = ("render", "train", "evaluate", "control", "identify")
 VPT_TOL = 1e-12  # a fraction of frames, recomputed from the recorded errors
 
 # command -> (arguments with one invalid value, the option the error must name)
@@ -19,6 +19,8 @@ BAD_ARGUMENTS = {
     "train": (["--data", "{tmp}/d", "--out", "{tmp}/t", "--width", "-8"], "--width"),
     "evaluate": (["--model", "{tmp}/m", "--data", "{tmp}/d", "--out", "{tmp}/e", "--batch", "x"], "--batch"),
     "control": (["--model", "{tmp}/m", "--out", "{tmp}/c", "--runs", "0"], "--runs"),
+    "identify": (["--model", "{tmp}/m", "--data", "{tmp}/d", "--out", "{tmp}/i", "--effects", "x"],
+                 "--effects"),
 }
 
 
@@ -64,6 +66,7 @@ def test_a_bad_argument_is_one_error_line_and_creates_nothing(command, tmp_path,
         (["train", "--data", "{tmp}/missing.npz", "--resume", "--overwrite"], "give one"),
         (["evaluate", "--model", "{tmp}/missing", "--data", "{tmp}/missing.npz"], "no such directory"),
         (["control", "--model", "{tmp}/missing"], "no such directory"),
+        (["identify", "--model", "{tmp}/missing", "--data", "{tmp}/missing.npz"], "no such file"),
     ],
 )
 def test_failures_before_any_work_create_nothing(argv, message, tmp_path, capsys):
@@ -139,13 +142,13 @@ def test_render_train_evaluate(tmp_path, capsys):
     import keyvision
 
     data, model, results, cache = (tmp_path / name for name in ("data", "model", "results", "cache"))
-    render = ["render", "--scene", "keycld/pendulum", "--out", data, "--runs", 2, "--frames", 6, "--size", 16]
+    render = ["render", "--scene", "keycld/pendulum", "--out", data, "--runs", 4, "--frames", 6, "--size", 16]
     render += ["--validation-runs", 1, "--workers", 1, "--cache", cache, "--no-progress"]
     status, out, err = _run(capsys, render)
     assert status == 0, err
-    assert "2 runs x 6 frames of 16x16 pixels" in out and "cached in" in out
+    assert "4 runs x 6 frames of 16x16 pixels" in out and "cached in" in out
     frames = keyvision.Frames.load(data / "frames.npz")
-    assert frames.frames.shape == (2, 6, 16, 16, 3)
+    assert frames.frames.shape == (4, 6, 16, 16, 3)
     # the same request again: the cache answers, and --overwrite replaces the frames file
     status, out, err = _run(capsys, render + ["--overwrite"])
     assert status == 0, err
@@ -167,6 +170,34 @@ def test_render_train_evaluate(tmp_path, capsys):
     assert status == 2 and "--resume" in _error_line(err, "train")
     status, _, err = _run(capsys, train + ["--resume", "--lr", 0.01])
     assert status == 2 and "options differ" in _error_line(err, "train")
+    # more rounds extend a finished training (here rounds without steps: nothing more to run) ...
+    status, out, err = _run(capsys, train + ["--resume", "--rounds", 3])
+    assert status == 0, err
+    assert json.loads((model / "keyvision.json").read_text())["schedule"]["rounds"] == 3
+    # ... and fewer would drop finished rounds: refused
+    status, _, err = _run(capsys, train + ["--resume", "--rounds", 2])
+    assert status == 2 and "options differ" in _error_line(err, "train")
+
+    # an ablation of the dynamics starting from this training's autoencoder: stage (a) is not run again
+    import jax
+
+    shared = tmp_path / "shared"
+    ablation = ["train", "--data", data, "--out", shared, "--width", 4, "--dynamics-width", 8]
+    ablation += ["--model", "nc", "--dynamics-steps", 2, "--joint-steps", 0, "--refit-steps", 0]
+    ablation += ["--no-progress"]
+    status, _, err = _run(capsys, ablation + ["--networks-from", model])
+    assert status == 0, err
+    assert not (shared / "history-autoencoder.json").exists()
+    spec = json.loads((shared / "keyvision.json").read_text())
+    assert spec["schedule"]["autoencoder_steps"] == 0 and spec["networks_from"]["autoencoder_seconds"] > 0
+    autoencoder, _ = keyvision.load_model(model, stage="autoencoder")
+    trained_nc, _ = keyvision.load_model(shared)
+    for part in ("estimator", "renderer"):  # no stage here trained the networks
+        pairs = zip(jax.tree.leaves(getattr(trained_nc, part)), jax.tree.leaves(getattr(autoencoder, part)))
+        for a, b in pairs:
+            np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+    status, _, err = _run(capsys, ablation[:-1] + ["--overwrite", "--width", 8, "--networks-from", model])
+    assert status == 2 and "--networks-from" in _error_line(err, "train") and "width" in err
 
     status, out, err = _run(capsys, ["evaluate", "--model", model, "--data", data, "--out", results])
     assert status == 0, err
@@ -181,7 +212,7 @@ def test_render_train_evaluate(tmp_path, capsys):
     # the strip shows the true validation frames (every one of the 6) over the predicted ones
     strip = imageio.imread(results / "strip.png")
     assert strip.shape == (32, 6 * 16, 3)
-    truth = np.concatenate(list(frames.frames[1]), axis=1)
+    truth = np.concatenate(list(frames.frames[-1]), axis=1)
     np.testing.assert_array_equal(strip[:16], truth)
     assert os.path.getsize(results / "mse.png") > 0
     # the GIF: every frame, true (with the estimated keypoint) beside predicted, four times enlarged
@@ -189,10 +220,34 @@ def test_render_train_evaluate(tmp_path, capsys):
     assert movie.shape[:3] == (6, 4 * 16, 2 * 4 * 16)
     assert np.isfinite(record["keypoint_tracking_r2"]) and record["keypoint_tracking_r2"] <= 1
     assert all(np.isfinite(e) and e >= 0 for e in record["keypoint_error_px"])
+    # the model after stage (b), rebuilt from the stages' files: here the finished model itself
+    status, out, err = _run(capsys, ["evaluate", "--model", model, "--stage", "dynamics", "--data", data,
+                                     "--out", tmp_path / "stage"])
+    assert status == 0, err
+    staged = json.loads((tmp_path / "stage" / "vpt.json").read_text())
+    assert staged["stage"] == "dynamics" and staged["vpt_per_run"] == record["vpt_per_run"]
+    status, _, err = _run(capsys, ["evaluate", "--model", model, "--stage", "joint-2", "--data", data,
+                                   "--out", tmp_path / "none"])
+    assert status == 2 and "no stage 'joint-2'" in _error_line(err, "evaluate")
+    # identify: the whole path on the tiny model, on runs long enough to be smoothed (18 frames)
+    measured = tmp_path / "measured"
+    longer = render[:4] + [measured, "--runs", 5, "--frames", 20, "--size", 16, "--validation-runs", 1]
+    status, _, err = _run(capsys, longer + ["--workers", 1, "--no-cache", "--no-progress"])
+    assert status == 0, err
+    identify = ["identify", "--model", model, "--data", measured, "--out", tmp_path / "id", "--no-progress"]
+    status, out, err = _run(capsys, identify)
+    assert status == 0, err
+    found = json.loads((tmp_path / "id" / "effects.json").read_text())
+    assert found["joints"] == {"hinge": "hinge"} and found["outcome"] in out
+    assert (tmp_path / "id" / "report.md").is_file()
+    assert found["images"]["runs"] == 1 and 0 <= found["images"]["before"]["vpt"]["mean"] <= 1
+    # the camera's scale: the width of the image frame (2 units) seen at the pendulum's plane
+    edges = frames.camera.to_plane(np.array([[-1.0, 0.0], [1.0, 0.0]]))
+    assert found["metres_per_unit"] == pytest.approx(np.linalg.norm(edges[1] - edges[0]) / 2, rel=1e-3)
     # the constraint drift: the pendulum's one constraint is the keypoint's distance from the image
     # centre (Anchor(0)); its standard deviation along the validation run, in pixels of 16
     trained, _ = keyvision.load_model(model)
-    keypoints = np.asarray(trained.encode(frames.frames[1].astype(np.float32) / 255), dtype=float)
+    keypoints = np.asarray(trained.encode(frames.frames[-1].astype(np.float32) / 255), dtype=float)
     expected = np.std(np.linalg.norm(keypoints, axis=-1)) * 16 / 2
     (drift,) = record["constraint_drift_px"]
     assert drift == pytest.approx(expected, rel=1e-3, abs=1e-6)

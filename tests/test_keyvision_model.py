@@ -3,6 +3,9 @@ and the heatmap regulariser, the dynamics loss on encoded keypoints against the 
 hand, and a tiny end-to-end training on synthetic pendulum frames (a disc on a circle) with resume."""
 
 
+import json
+import pathlib
+
 import equinox as eqx
 import jax
 import jax.numpy as jnp
@@ -264,12 +267,12 @@ def trained(tmp_path_factory):
     model = _model(jax.random.key(0))
     out = tmp_path_factory.mktemp("keycld")
     result = keyvision.train(model, data, key=jax.random.key(1), schedule=SCHEDULE, out=out)
-    return model, data, angles, result
+    return model, data, angles, result, out
 
 
 @pytest.mark.xdist_group("trained")
 def test_training_lowers_reconstruction_and_dynamics_losses(trained):
-    model, data, angles, result = trained
+    model, data, angles, result, _ = trained
     assert set(result.stages) == {"autoencoder", "dynamics", "joint", "refit"}
     before, after = _reconstruction(model, data), _reconstruction(result.model, data)
     assert after < RECONSTRUCTION_GAIN * before
@@ -312,7 +315,7 @@ class _KillAt(cldyn.AbstractProgressMeter):
 @pytest.mark.slow
 @pytest.mark.xdist_group("trained")
 def test_interrupted_training_resumes_bitwise(trained, tmp_path):
-    _, data, _, whole = trained
+    _, data, _, whole, _ = trained
     model = _model(jax.random.key(0))
     # killed in stage (a), then in stage (c): each restart skips the finished stages
     for kill in (_KillAt("autoencoder", SCHEDULE.autoencoder_steps // 2), _KillAt("joint", 10)):
@@ -327,8 +330,73 @@ def test_interrupted_training_resumes_bitwise(trained, tmp_path):
 
 
 @pytest.mark.xdist_group("trained")
+def test_load_model_rebuilds_the_model_after_every_stage(trained, tmp_path):
+    _, _, _, result, out = trained
+    spec = {"keypoints": 1, "width": WIDTH, "image_size": SIZE, "schedule": SCHEDULE.describe(),
+            "dynamics": {"kind": "keycld", "size": 2, "num_inputs": 1, "constraint": "pendulum",
+                         "width": 16, "depth": 2}}
+    keyvision.save_model(out, result.model, spec)
+    stages = result.stages
+    after_dynamics = eqx.tree_at(lambda m: m.dynamics, stages["autoencoder"].model, stages["dynamics"].model)
+    expected = {"autoencoder": stages["autoencoder"].model, "dynamics": after_dynamics,
+                "joint": stages["joint"].model, "refit": result.model}
+    for stage, model in expected.items():
+        loaded, _ = keyvision.load_model(out, stage=stage)
+        _assert_bitwise_equal(loaded, model)
+    with pytest.raises(ValueError, match="no stage 'joint-2'.*autoencoder, dynamics, joint, refit"):
+        keyvision.load_model(out, stage="joint-2")
+    # a stage whose file is gone: named, not silently replaced by another stage's model
+    for name in ("keyvision.json", "model-joint.eqx", "model-refit.eqx"):
+        (tmp_path / name).write_bytes((pathlib.Path(out) / name).read_bytes())
+    with pytest.raises(FileNotFoundError, match="model-autoencoder.eqx"):
+        keyvision.load_model(tmp_path, stage="dynamics")
+    _assert_bitwise_equal(keyvision.load_model(tmp_path, stage="refit")[0], result.model)
+
+
+def test_model_from_spec_builds_the_networks_it_names():
+    spec = {"keypoints": 2, "width": 4, "image_size": 16,
+            "dynamics": {"kind": "nc", "size": 4, "num_inputs": 1, "width": 8, "depth": 1}}
+    unet = keyvision.model_from_spec(spec, key=jax.random.key(0))
+    assert isinstance(unet.estimator, keyvision.KeypointEstimator)
+    assert isinstance(unet.renderer, keyvision.Renderer)
+    fc = keyvision.model_from_spec(spec | {"networks": "fc"}, key=jax.random.key(0))
+    assert isinstance(fc.estimator, keyvision.KeypointEstimatorFC)
+    assert isinstance(fc.renderer, keyvision.RendererFC)
+    assert fc.decode(fc.encode(jnp.zeros((16, 16, 3), jnp.float32))).shape == (16, 16, 3)
+    with pytest.raises(ValueError, match="networks 'cnn'"):
+        keyvision.model_from_spec(spec | {"networks": "cnn"}, key=jax.random.key(0))
+
+
+@pytest.mark.xdist_group("trained")
+def test_load_model_restores_the_keypoint_order_of_stage_b(tmp_path):
+    """Two keypoints that stage (b) renumbered: the networks of stage (a), permuted, with stage (b)'s
+    dynamics."""
+    model = _model(jax.random.key(3), keypoints=2)
+    dynamics = _model(jax.random.key(4), keypoints=2).dynamics
+    spec = {"keypoints": 2, "width": WIDTH, "image_size": SIZE,
+            "schedule": {"autoencoder_steps": 1, "dynamics_steps": 1, "joint_steps": 0, "refit_steps": 0,
+                         "rounds": 1},
+            "dynamics": {"kind": "nc", "size": 4, "num_inputs": 1, "width": 16, "depth": 2}}
+    eqx.tree_serialise_leaves(tmp_path / "model-autoencoder.eqx", model)
+    eqx.tree_serialise_leaves(tmp_path / "model-dynamics.eqx", dynamics)
+    (tmp_path / "keyvision.json").write_text(json.dumps(spec))
+    with pytest.raises(FileNotFoundError, match="keypoint-order.json"):
+        keyvision.load_model(tmp_path, stage="dynamics")
+    (tmp_path / "keypoint-order.json").write_text(json.dumps({"keypoint_order": [1, 0]}))
+    loaded, _ = keyvision.load_model(tmp_path, stage="dynamics")
+    image = jnp.asarray(pendulum_frames(1, 1)[0][0, 0], jnp.float32) / 255
+    # the renumbered estimator gives the keypoints in the other order; the renderer takes them so
+    np.testing.assert_array_equal(loaded.encode(image), model.encode(image).reshape(2, 2)[::-1].reshape(4))
+    keypoints = jnp.asarray([0.3, -0.2, -0.5, 0.1])
+    swapped = keypoints.reshape(2, 2)[::-1].reshape(4)
+    np.testing.assert_allclose(loaded.decode(keypoints), model.decode(swapped), atol=1e-6)
+    _assert_bitwise_equal(loaded.dynamics, dynamics)
+    _assert_bitwise_equal(keyvision.load_model(tmp_path, stage="autoencoder")[0], model)
+
+
+@pytest.mark.xdist_group("trained")
 def test_predict_starts_from_the_reconstruction_and_scores_a_vpt(trained):
-    _, data, _, result = trained
+    _, data, _, result, _ = trained
     # float64: cldyn.rollout saves at float64 times when JAX's 64-bit mode is on (as in the tests)
     model = _cast(result.model, jnp.float64)
     images, controls = data.images(jnp.float64)[:4], jnp.asarray(data.u[:4], jnp.float64)

@@ -95,6 +95,24 @@ def test_rendering_does_not_depend_on_the_number_of_workers(marker_frames):
     np.testing.assert_array_equal(again.u, marker_frames.u)
 
 
+def test_render_poses_draws_the_poses_with_their_potential_energy(marker_frames):
+    """The frames and keypoints of `render` for the same joint positions, and MuJoCo's potential
+    energy in closed form: V = g (m_c h + m_a (h + L cos q)), the carriage at the pivot's height."""
+    qpos = marker_frames.extras["qpos"].reshape(-1, 2)
+    poses = keyvision.render_poses(MARKER_SCENE, qpos, camera="oblique", image_size=SMALL.image_size,
+                                   keypoints=["marker"])
+    np.testing.assert_array_equal(poses["frames"], marker_frames.frames.reshape(poses["frames"].shape))
+    keypoints = marker_frames.extras["keypoints"].reshape(-1, 2)
+    np.testing.assert_allclose(poses["keypoints"], keypoints, atol=EXACT)
+    gravity, carriage, arm = 9.81, 1.0, 0.5
+    expected = gravity * (carriage * PIVOT_HEIGHT + arm * (PIVOT_HEIGHT + ARM * np.cos(qpos[:, 1])))
+    np.testing.assert_allclose(poses["potential"], expected, atol=EXACT)
+    with pytest.raises(ValueError, match=r"qpos must be \(N, 2\)"):
+        keyvision.render_poses(MARKER_SCENE, qpos[:, :1], camera="oblique")
+    with pytest.raises(ValueError, match="NaN"):
+        keyvision.render_poses(MARKER_SCENE, np.full((1, 2), np.nan), camera="oblique")
+
+
 def test_keycld_pendulum_follows_the_papers_protocol():
     """A.6: dt 0.02 s with (semi-implicit) Euler, one step per frame; the pivot at the image centre;
     one constant control per run in U(-2, 2), zero in 20% of runs; velocities U(-0.1, 0.1)."""

@@ -18,12 +18,23 @@ from ._common import (
 REPORT_FILES = ("report.json", "report.md", "error_over_time.png", "residual_vs_feature.png")
 
 
-def register(subparsers) -> None:
-    """Add `cldyn identify`."""
+def add_effects_option(parser) -> None:
+    """`--effects`: the effects of the library to consider (all by default)."""
     from .. import EFFECTS
 
     effects = [effect.name for effect in EFFECTS]
+    parser.add_argument(
+        "--effects",
+        nargs="+",
+        default=effects,
+        choices=effects,
+        metavar="EFFECT",
+        help=f"effects to consider, of {', '.join(effects)} (default: all)",
+    )
 
+
+def register(subparsers) -> None:
+    """Add `cldyn identify`."""
     parser = add_command(
         subparsers,
         "identify",
@@ -41,14 +52,7 @@ def register(subparsers) -> None:
         help="the nominal MJCF (file, suite name, cartpole/two_poles or keycld/<name>)",
     )
     parser.add_argument("--out", required=True, help="directory for report.json/md and plots")
-    parser.add_argument(
-        "--effects",
-        nargs="+",
-        default=effects,
-        choices=effects,
-        metavar="EFFECT",
-        help=f"effects to consider, of {', '.join(effects)} (default: all)",
-    )
+    add_effects_option(parser)
     count = positive(integer=True)
     parser.add_argument("--bootstrap", type=count, default=100, help="bootstrap replicates")
     parser.add_argument("--holdout", type=fraction, default=0.25, help="fraction of runs held out")

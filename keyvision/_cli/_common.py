@@ -31,12 +31,16 @@ def model_files(directory: str, option: str) -> tuple[pathlib.Path, pathlib.Path
     return spec, model
 
 
-def load_model(directory: str, option: str):
-    """`(model, spec)` of a directory written by `keyvision train` (`keyvision.load_model`)."""
+def load_model(directory: str, option: str, stage: str | None = None):
+    """`(model, spec)` of a directory written by `keyvision train` (`keyvision.load_model`), the
+    finished model or, with `stage`, the model as the training left it after that stage."""
     import keyvision
 
-    model_files(directory, option)
+    if stage is None:
+        model_files(directory, option)
+    elif not pathlib.Path(directory).is_dir():
+        raise CommandError(f"{option} {directory}: no such directory")
     try:
-        return keyvision.load_model(directory)
+        return keyvision.load_model(directory, stage=stage)
     except (FileNotFoundError, ValueError) as error:
         raise CommandError(str(error)) from None

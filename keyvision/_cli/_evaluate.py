@@ -36,6 +36,12 @@ def register(subparsers) -> None:
     parser.add_argument("--data", required=True, help="frames.npz, or the directory keyvision render wrote")
     parser.add_argument("--out", required=True, help="output directory")
     parser.add_argument(
+        "--stage",
+        default=None,
+        help="evaluate the model as the training left it after this stage (autoencoder, dynamics, joint, "
+        "refit, joint-2, ...; from the stages' files in --model) instead of the finished model",
+    )
+    parser.add_argument(
         "--batch", type=positive(integer=True), default=8, help="runs predicted per call (bounds the memory)"
     )
     parser.add_argument(
@@ -46,32 +52,6 @@ def register(subparsers) -> None:
     )
     add_overwrite(parser, "results")
     parser.set_defaults(run=run)
-
-
-def _predict(model, images, controls, dt: float, batch: int):
-    """Every run's predicted keypoints and frames, `batch` runs per compiled call (the last call
-    padded to the same shape)."""
-    import equinox as eqx
-    import jax
-
-    import keyvision
-
-    @eqx.filter_jit
-    @jax.vmap
-    def predict(z, u):
-        keypoints = keyvision.predict_keypoints(model, z, u, dt)
-        return keypoints, model.decode(keypoints)
-
-    runs = images.shape[0]
-    batch = min(batch, runs)
-    parts = []
-    for start in range(0, runs, batch):
-        z, u = images[start : start + batch], controls[start : start + batch]
-        missing = batch - z.shape[0]
-        if missing:
-            z, u = (np.concatenate([a, np.repeat(a[-1:], missing, axis=0)]) for a in (z, u))
-        parts.append([np.asarray(a)[: batch - missing] for a in predict(z, u)])
-    return tuple(np.concatenate(arrays) for arrays in zip(*parts))
 
 
 def _plot_mse(path, ts, mse, threshold: float) -> None:
@@ -155,9 +135,11 @@ def report(model, validation, out, *, batch: int = 8, strip_run: int = 0) -> tup
     strip.png and prediction.gif to `out`; returns the record for vpt.json and a summary line."""
     import keyvision
 
+    from .._evaluate import predict_runs
+
     images = validation.images(np.float32)
     controls = validation.u.astype(np.float32)
-    predicted_keypoints, predicted = _predict(model, images, controls, validation.dt, batch)
+    predicted_keypoints, predicted = predict_runs(model, images, controls, validation.dt, batch)
     import equinox as eqx
     import jax
 
@@ -186,6 +168,7 @@ def report(model, validation, out, *, batch: int = 8, strip_run: int = 0) -> tup
         },
         "threshold": threshold,
         "mse_over_time": mse.mean(axis=0).tolist(),
+        "mse_per_run": mse.tolist(),
         "runs": validation.num_runs,
         "frames": validation.num_frames,
         "dt": validation.dt,
@@ -232,7 +215,8 @@ def report(model, validation, out, *, batch: int = 8, strip_run: int = 0) -> tup
 
 def run(args: argparse.Namespace) -> int:
     """Load, predict, score, plot, print one line."""
-    model_files(args.model, "--model")
+    if args.stage is None:  # a stage's model is checked when it is rebuilt
+        model_files(args.model, "--model")
     data_path = frames_file(args.data, "--data")
     out = output_directory(args.out, results=_RESULTS, overwrite=args.overwrite)
     from cldyn._misc import optional_import
@@ -245,7 +229,7 @@ def run(args: argparse.Namespace) -> int:
 
     from ._common import load_model
 
-    model, spec = load_model(args.model, "--model")
+    model, spec = load_model(args.model, "--model", args.stage)
     frames = keyvision.Frames.load(data_path)
     validation = frames.split()[1]
     if validation.num_runs == 0:
@@ -264,7 +248,8 @@ def run(args: argparse.Namespace) -> int:
     if validation.num_frames < 3:
         raise CommandError(f"--data: runs of {validation.num_frames} frames; a prediction starts from 3")
     record, line = report(model, validation, out, batch=args.batch, strip_run=args.strip_run)
-    record.update(model=str(args.model), data=str(data_path), scene=frames.info.get("scene"))
+    record.update(model=str(args.model), stage=args.stage, data=str(data_path))
+    record.update(scene=frames.info.get("scene"))
     atomic_write(out / "vpt.json", json.dumps(record, indent=1))
     print(line)
     return 0

@@ -22,6 +22,7 @@ from cldyn._cli._common import (
 )
 from cldyn._keycld import KEYCLD_SCENES, MODEL_KINDS
 
+from .._files import INITIAL_NAME
 from ._common import MODEL_NAME, SPEC_NAME, frames_file
 
 _STAGE_FILES = (("checkpoint", "eqx"), ("history", "json"), ("model", "eqx"))
@@ -53,6 +54,20 @@ def register(subparsers) -> None:
         "--constraint", choices=KEYCLD_SCENES, help="KeyCLD's constraints (default: the frames' KeyCLD scene)"
     )
     parser.add_argument("--width", type=count, default=32, help="width of both U-Nets (32 in the paper)")
+    parser.add_argument(
+        "--networks",
+        choices=("unet", "fc"),
+        default="unet",
+        help="the estimator and renderer: the paper's U-Nets, or its FC ablation (appendix A.4)",
+    )
+    parser.add_argument(
+        "--networks-from",
+        metavar="DIR",
+        default=None,
+        help="start from the estimator and renderer of the autoencoder stage of another keyvision train "
+        "on the same frames, with the same networks, and skip that stage here (the ablations of the "
+        "dynamics share one autoencoder)",
+    )
     parser.add_argument(
         "--dynamics-width",
         type=count,
@@ -140,7 +155,11 @@ def register(subparsers) -> None:
         help="show the estimator each frame turned and mirrored at random (dihedral augmentation)",
     )
     parser.add_argument("--seed", type=seed, default=0, help="seed of the model and the batches")
-    parser.add_argument("--resume", action="store_true", help="continue the training in --out")
+    parser.add_argument(
+        "--resume",
+        action="store_true",
+        help="continue the training in --out (with the same options, or more --rounds to extend it)",
+    )
     parser.add_argument(
         "--overwrite", action="store_true", help="start afresh in an --out that holds a training"
     )
@@ -155,6 +174,8 @@ def _model_spec(args: argparse.Namespace, frames) -> dict:
         raise CommandError(
             f"--data: frames of {height}x{width} pixels; the U-Nets need square sides, multiples of 4"
         )
+    if args.networks == "fc" and height % 16:
+        raise CommandError(f"--networks fc: frames of {height} pixels; the FC networks need a multiple of 16")
     scene = str(frames.info.get("scene", ""))
     constraint = args.constraint or (scene.removeprefix("keycld/") if scene.startswith("keycld/") else None)
     if args.model.startswith("keycld") and constraint is None:
@@ -163,11 +184,13 @@ def _model_spec(args: argparse.Namespace, frames) -> dict:
         )
     node2 = args.model == "node2"
     keypoints = len(frames.info["keypoint_names"])
+    networks = {} if args.networks == "unet" else {"networks": args.networks}  # older specs have no entry
     return {
         "schema": "keyvision.Model/1",
         "keypoints": keypoints,
         "image_size": height,
         "width": args.width,
+        **networks,
         "dynamics": {
             "kind": args.model,
             "size": 2 * keypoints,
@@ -198,6 +221,41 @@ def _stages(rounds: int) -> list[str]:
     from keyvision._train import stage_names
 
     return ["autoencoder", "dynamics", *(name for r in range(1, rounds + 1) for name in stage_names(r))]
+
+
+def _networks_source(directory: str, spec: dict, frames) -> dict:
+    """The estimator and renderer after the autoencoder stage of the training in `directory`, checked
+    to fit this training (the same networks and sizes, the same frames), and what to record of them."""
+    import pathlib
+
+    from ._common import load_model
+
+    model, source = load_model(directory, "--networks-from", stage="autoencoder")
+    for name in ("keypoints", "width", "image_size", "networks"):
+        if source.get(name, "unet" if name == "networks" else None) != spec.get(name, "unet"):
+            raise CommandError(
+                f"--networks-from {directory}: its {name} ({source.get(name, 'unet')}) differs from this "
+                f"training's ({spec.get(name, 'unet')})"
+            )
+    if (source.get("data") or {}).get("cache_key") != frames.info.get("cache_key"):
+        raise CommandError(f"--networks-from {directory}: it was trained on other frames than --data")
+    history = pathlib.Path(directory) / "history-autoencoder.json"
+    try:
+        records = json.loads(history.read_text())["records"]
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError, KeyError, TypeError):
+        records = []
+    seconds = records[-1].get("seconds") if records else None
+    return {
+        "model": model,
+        "record": {"directory": str(pathlib.Path(directory).resolve()), "autoencoder_seconds": seconds},
+    }
+
+
+def _more_rounds(previous, schedule: dict) -> bool:
+    """Whether `schedule` is the `previous` one with at least as many rounds, and nothing else changed."""
+    if not isinstance(previous, dict) or not isinstance(previous.get("rounds"), int):
+        return False
+    return previous["rounds"] <= schedule["rounds"] and {**previous, "rounds": schedule["rounds"]} == schedule
 
 
 def _checkpointed(out, rounds: int) -> bool:
@@ -244,9 +302,10 @@ def run(args: argparse.Namespace) -> int:
     train_frames, validation_frames = frames.split()
     if train_frames.num_runs == 0:
         raise CommandError(f"--data {data_path}: all {frames.num_runs} runs are for validation")
+    source = None if args.networks_from is None else _networks_source(args.networks_from, spec, frames)
     schedule = dataclasses.replace(
         keyvision.Schedule(),
-        autoencoder_steps=args.autoencoder_steps,
+        autoencoder_steps=0 if source is not None else args.autoencoder_steps,
         dynamics_steps=args.dynamics_steps,
         joint_steps=args.joint_steps,
         refit_steps=args.refit_steps,
@@ -272,6 +331,8 @@ def run(args: argparse.Namespace) -> int:
         },
         schedule=schedule.describe(),
     )
+    if source is not None:
+        spec["networks_from"] = source["record"]
     spec_path = out / SPEC_NAME
     if args.resume and spec_path.is_file():
         try:
@@ -281,6 +342,8 @@ def run(args: argparse.Namespace) -> int:
                 f"{spec_path}: unreadable ({error}); cannot check what --resume continues"
             ) from None
         changed = sorted(name for name in {**previous, **spec} if previous.get(name) != spec.get(name))
+        if changed == ["schedule"] and _more_rounds(previous["schedule"], spec["schedule"]):
+            changed = []  # further rounds continue a training (finished or not): stages already run stay
         if changed:
             raise CommandError(
                 f"--resume: the options differ from those of the training in {out} ({', '.join(changed)}); "
@@ -291,6 +354,12 @@ def run(args: argparse.Namespace) -> int:
         model = keyvision.model_from_spec(spec, key=model_key)
     except ValueError as error:
         raise CommandError(f"--constraint {spec['dynamics']['constraint']}: {error}") from None
+    initial = out / INITIAL_NAME
+    if source is not None:
+        if args.resume and initial.is_file():  # the networks this training started from, as saved then
+            model = eqx.tree_deserialise_leaves(initial, model)
+        else:
+            model = keyvision.KeyCLD(source["model"].estimator, model.dynamics, source["model"].renderer)
     validation = None
     if validation_frames.num_runs:
         validation = keyvision.ImageSequences.from_frames(
@@ -298,6 +367,10 @@ def run(args: argparse.Namespace) -> int:
         )
     fresh = not spec_path.exists()
     atomic_write(spec_path, json.dumps(spec, indent=1))
+    if source is not None and not (args.resume and initial.is_file()):
+        atomic_save(initial, lambda temporary: eqx.tree_serialise_leaves(temporary, model))
+    elif source is None and not args.resume:
+        initial.unlink(missing_ok=True)  # an earlier training's, replaced by --overwrite
     try:
         result = keyvision.train(
             model,
@@ -311,7 +384,7 @@ def run(args: argparse.Namespace) -> int:
         )
     except BaseException as error:
         if fresh and not _checkpointed(out, args.rounds):
-            for name in (SPEC_NAME, "train.json"):  # nothing to resume: leave --out as it was
+            for name in (SPEC_NAME, "train.json", INITIAL_NAME):  # nothing to resume: leave --out as it was
                 (out / name).unlink(missing_ok=True)
             if created and not any(out.iterdir()):
                 out.rmdir()

@@ -1,0 +1,103 @@
+"""`keyvision identify`: what a model learnt from images is missing, found in frames of the system."""
+
+import argparse
+import json
+
+from cldyn._cli._common import (
+    CommandError,
+    add_command,
+    add_overwrite,
+    enable_float64,
+    output_directory,
+    seed,
+)
+from cldyn._cli._identify import REPORT_FILES, add_effects_option
+
+from ._common import frames_file
+
+# what cldyn's Identification.save writes, and the effects in MuJoCo's units
+_RESULTS = (*REPORT_FILES, "effects.json")
+
+
+def register(subparsers) -> None:
+    """Add `keyvision identify`."""
+    parser = add_command(
+        subparsers,
+        "identify",
+        help="find the physics a model learnt from images is missing, in frames of the system",
+        description="Encode every frame of --data with the model's estimator, read the joints of the "
+        "keypoints from the model's constraints (hinges and slides, named after the scene's MuJoCo "
+        "joints), run cldyn's identify with the learnt dynamics as the nominal model (float64), and "
+        "convert the detected effects to MuJoCo's units with the camera's scale and the energy scale "
+        "that the scene's actuator gears fix. Writes cldyn's report (report.json, report.md, plots) and "
+        "effects.json (every detection in MuJoCo's units and the model's) to --out.",
+    )
+    parser.add_argument("--model", required=True, help="the directory keyvision train wrote")
+    parser.add_argument("--data", required=True, help="frames.npz of the system, or the directory of one")
+    parser.add_argument("--out", required=True, help="output directory")
+    add_effects_option(parser)
+    parser.add_argument("--seed", type=seed, default=0, help="seed of the hold-out split and the bootstrap")
+    parser.add_argument("--no-progress", dest="progress", action="store_false", help="no progress lines")
+    add_overwrite(parser, "results")
+    parser.set_defaults(run=run)
+
+
+def run(args: argparse.Namespace) -> int:
+    """Identify, save the reports, print a summary line."""
+    data_path = frames_file(args.data, "--data")
+    out = output_directory(args.out, results=_RESULTS, overwrite=args.overwrite)
+    enable_float64()
+    import cldyn
+    import keyvision
+    from cldyn._misc import atomic_write
+
+    from ._common import load_model
+
+    model, spec = load_model(args.model, "--model")
+    frames = keyvision.Frames.load(data_path)
+    if frames.image_size != (model.image_size, model.image_size):
+        raise CommandError(
+            f"--data: frames of {frames.image_size} pixels; the model takes {model.image_size} x "
+            f"{model.image_size}"
+        )
+    if frames.u.shape[-1] != spec["dynamics"]["num_inputs"]:
+        raise CommandError(
+            f"--data: {frames.u.shape[-1]} controls; the model takes {spec['dynamics']['num_inputs']}"
+        )
+    meter = cldyn.TextProgressMeter() if args.progress else None
+    try:
+        result = keyvision.identify(model, frames, progress_meter=meter, effects=args.effects, seed=args.seed)
+    except (ValueError, TypeError, cldyn.ConstraintViolation) as error:
+        raise CommandError(str(error)) from None
+    result.identification.save(out)
+    record = {
+        "model": str(args.model),
+        "data": str(data_path),
+        "outcome": result.identification.outcome,
+        "effects": list(result.effects),
+        "joints": dict(zip(result.structure.names, result.structure.kinds)),
+        "joules_per_unit": result.joules_per_unit,
+        "metres_per_unit": result.metres_per_unit,
+        "images": result.images,
+    }
+    atomic_write(out / "effects.json", json.dumps(record, indent=1))
+    found = "; ".join(
+        f"{e['name']}[{e['where']}] = {e['value']:.4g}"
+        if e["value"] is not None
+        else f"{e['name']}[{e['where']}]"
+        for e in result.effects
+    )
+    before, after = result.identification.before, result.identification.after
+    images = ""
+    if result.images is not None:
+        was, now = result.images["before"], result.images["after"]
+        images = (
+            f"; on {result.images['runs']} validation runs VPT {was['vpt']['mean']:.3f} -> "
+            f"{now['vpt']['mean']:.3f}, image MSE {was['mse']:.3g} -> {now['mse']:.3g}"
+        )
+    print(
+        f"{result.identification.outcome}{': ' + found if found else ''} (MuJoCo's units); held-out rollout "
+        f"error over 1 s {before.rollout_rmse_1s:.4g} -> {after.rollout_rmse_1s:.4g} (image units){images}; "
+        f"wrote {', '.join(_RESULTS)} to {out}"
+    )
+    return 0

@@ -1,0 +1,431 @@
+"""Finding what a model learnt from images is missing: its keypoints as joints, `cldyn.identify`, and
+the effects' values in MuJoCo's units.
+
+A KeyCLD model of a planar chain knows its joints only through its constraints: `Anchor(i)` hinges
+keypoint `i` about a fixed point, `Distance(i, j)` hinges `j` about `i`, `FixedCoordinate(i, axis=1)`
+slides `i` along a horizontal rail. `structure` reads those into joint coordinates and the map from
+joints to keypoints, with the link lengths measured on the data (the constraints' values along the
+runs: only their Jacobians enter the dynamics, so a learnt model carries no lengths of its own).
+"""
+
+import dataclasses
+from collections.abc import Mapping, Sequence
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jaxtyping import ArrayLike, Float
+
+import cldyn
+from cldyn._constraint import Anchor, Distance, FixedCoordinate, Stack
+
+
+@dataclasses.dataclass(frozen=True)
+class _Joint:
+    kind: str  # "hinge" or "slide"
+    keypoint: int  # the keypoint this joint places
+    parent: int | None  # the keypoint it hangs from (None: a fixed point)
+    relative: bool  # a hinge measured from its parent link's direction (else from straight down)
+    level: float  # link length (hinge) or the rail's height (slide)
+    pivot: tuple[float, float] = (0.0, 0.0)
+    axis: tuple[float, float] = (1.0, 0.0)
+    free: bool = False  # one of the two slides of an unconstrained keypoint
+
+
+def _leaves(constraint) -> list:
+    if constraint is None:
+        return []
+    if isinstance(constraint, Stack):
+        return [leaf for part in constraint.constraints for leaf in _leaves(part)]
+    return [constraint]
+
+
+def _chain(constraint, x: np.ndarray) -> list[_Joint]:
+    """The joints of a planar chain of keypoints, in the order that places them, from its constraints."""
+    count = x.shape[-1] // 2
+    points = x.reshape(-1, count, 2)
+    placed_by: dict[int, object] = {}
+    for leaf in _leaves(constraint):
+        if isinstance(leaf, Anchor):
+            child = leaf.keypoint
+        elif isinstance(leaf, Distance):
+            child = leaf.second
+        elif isinstance(leaf, FixedCoordinate) and leaf.dim == 2:
+            child = leaf.keypoint
+        else:
+            raise ValueError(
+                f"joints from keypoints: constraint {type(leaf).__name__} is not one of a planar chain "
+                "(Anchor, Distance, FixedCoordinate)"
+            )
+        if child in placed_by:
+            raise ValueError(f"joints from keypoints: keypoint {child} is constrained twice (a closed loop)")
+        placed_by[child] = leaf
+    joints: list[_Joint] = []
+    hinged: set[int] = set()  # keypoints placed by a hinge: a child's angle is measured from their link
+    link_parent: dict[int, int | None] = {}
+
+    def place(i: int, visiting: tuple[int, ...] = ()) -> None:
+        if any(j.keypoint == i for j in joints):
+            return
+        if i in visiting:
+            raise ValueError(f"joints from keypoints: the constraints form a loop through keypoint {i}")
+        leaf = placed_by.get(i)
+        if leaf is None:  # a free keypoint: two slides
+            for axis in ((1.0, 0.0), (0.0, 1.0)):
+                joints.append(_Joint("slide", i, None, False, 0.0, axis=axis, free=True))
+            return
+        if isinstance(leaf, Anchor):
+            pivot = tuple(float(v) for v in leaf.point)
+            length = float(np.median(np.linalg.norm(points[:, i] - np.asarray(pivot), axis=-1)))
+            joints.append(_Joint("hinge", i, None, False, length, pivot=pivot))
+            hinged.add(i)
+            link_parent[i] = None
+        elif isinstance(leaf, Distance):
+            parent = leaf.first
+            place(parent, (*visiting, i))
+            length = float(np.median(np.linalg.norm(points[:, i] - points[:, parent], axis=-1)))
+            joints.append(_Joint("hinge", i, parent, parent in hinged, length))
+            hinged.add(i)
+            link_parent[i] = parent
+        else:  # FixedCoordinate: the other coordinate slides
+            slide = 1 - leaf.axis
+            axis = (1.0, 0.0) if slide == 0 else (0.0, 1.0)
+            level = float(np.median(points[:, i, leaf.axis]))
+            joints.append(_Joint("slide", i, None, False, level, axis=axis))
+            link_parent[i] = None
+
+    for i in range(count):
+        place(i)
+    return joints
+
+
+def _coordinate(joint: _Joint, parents: dict[int, int | None]) -> cldyn.AbstractCoordinate:
+    if joint.kind == "slide":
+        return cldyn.SliderPosition(joint.keypoint, axis=joint.axis)
+    if joint.parent is None:
+        return cldyn.HingeAngle(child=(None, joint.keypoint), pivot=joint.pivot)
+    if joint.relative:  # from the direction of the parent's own link
+        grandparent = parents.get(joint.parent)
+        return cldyn.HingeAngle(child=(joint.parent, joint.keypoint), parent=(grandparent, joint.parent))
+    return cldyn.HingeAngle(child=(joint.parent, joint.keypoint))
+
+
+class _Forward(eqx.Module):
+    """`x = F(q)` of a planar chain: hinges measured from straight down or from their parent link."""
+
+    joints: tuple[_Joint, ...] = eqx.field(static=True)
+    count: int = eqx.field(static=True)
+
+    def __call__(self, q):
+        positions: dict[int, jax.Array] = {}
+        angles: dict[int, jax.Array] = {}
+        free: dict[int, list] = {}
+        for index, joint in enumerate(self.joints):
+            if joint.kind == "slide":
+                if joint.free:  # an unconstrained keypoint: its two coordinates
+                    free.setdefault(joint.keypoint, []).append(q[index])
+                    if len(free[joint.keypoint]) == 2:
+                        positions[joint.keypoint] = jnp.stack(free[joint.keypoint])
+                    continue
+                along = q[index] * jnp.asarray(joint.axis, dtype=q.dtype)
+                across = joint.level * jnp.asarray(joint.axis[::-1], dtype=q.dtype)
+                positions[joint.keypoint] = along + across
+                continue
+            angle = q[index] + (angles[joint.parent] if joint.relative else 0.0)
+            if joint.parent is None:
+                base = jnp.asarray(joint.pivot, dtype=q.dtype)
+            else:
+                base = positions[joint.parent]
+            positions[joint.keypoint] = base + joint.level * jnp.stack([jnp.sin(angle), -jnp.cos(angle)])
+            angles[joint.keypoint] = angle
+        return jnp.concatenate([positions[i] for i in range(self.count)])
+
+
+class _Inverse(eqx.Module):
+    coordinates: tuple[cldyn.AbstractCoordinate, ...]
+
+    def __call__(self, x):
+        return jnp.stack([c(x) for c in self.coordinates])
+
+
+@dataclasses.dataclass(frozen=True)
+class JointStructure:
+    """The joints of a planar chain of keypoints, read from a KeyCLD model's constraints.
+
+    **Fields:**
+
+    - `names`: one name per joint (MuJoCo's joint names where given).
+    - `kinds`: `"hinge"` or `"slide"` per joint.
+    - `coordinates`: name -> `cldyn.AbstractCoordinate` (`HingeAngle`, `SliderPosition`), what
+      `cldyn.identify`'s `joint_coordinates` takes.
+    - `joint_map`: the `cldyn.JointMap` between joints and keypoints, with link lengths measured on the
+      data.
+    - `levels`: the measured link lengths (hinges) and rail heights (slides), in keypoint units.
+    """
+
+    names: tuple[str, ...]
+    kinds: tuple[str, ...]
+    coordinates: dict[str, cldyn.AbstractCoordinate]
+    joint_map: cldyn.JointMap
+    levels: tuple[float, ...]
+
+
+def joint_structure(
+    constraint: cldyn.AbstractConstraint | None,
+    x: Float[ArrayLike, "*batch k"],
+    names: Sequence[str] | None = None,
+) -> JointStructure:
+    """The joints of a planar chain of keypoints, from the constraints that tie them.
+
+    `Anchor(i)` is a hinge about a fixed point, `Distance(i, j)` a hinge of `j` about `i` (measured
+    from the direction of the link before it when `i` is itself hinged, as MuJoCo's hinges are), and
+    `FixedCoordinate(i, axis)` a slide along the other axis; a keypoint without a constraint is two
+    slides. Hinge angles are counter-clockwise from straight down (or from the parent link).
+
+    **Arguments:**
+
+    - `constraint`: the model's constraint (`model.constraint`).
+    - `x`: keypoints `(..., k)` on which the link lengths and rail heights are measured (medians).
+    - `names`: a name per joint in the order of the keypoints they place (e.g. MuJoCo's joint names
+      of the scene); `joint_0`, `joint_1`, ... by default.
+
+    **Returns:** a `keyvision.JointStructure`. Constraints that are not a planar chain (a keypoint
+    constrained twice, a loop, other kinds of constraint) raise a `ValueError` that says which.
+
+    !!! example
+
+        ```python
+        structure = keyvision.joint_structure(cldyn.keycld_constraint("acrobot"), keypoints,
+                                              names=["shoulder", "elbow"])
+        ```
+    """
+    x = np.asarray(x, dtype=float)
+    if x.ndim < 1 or x.shape[-1] % 2:
+        raise ValueError(f"joint_structure: keypoints must be (..., k) with k even, got {x.shape}")
+    joints = _chain(constraint, x)
+    if names is None:
+        names = [f"joint_{i}" for i in range(len(joints))]
+    names = tuple(str(n) for n in names)
+    if len(names) != len(joints):
+        raise ValueError(f"joint_structure: {len(names)} names for the chain's {len(joints)} joints")
+    parents = {j.keypoint: j.parent for j in joints if j.kind == "hinge"}
+    coordinates = tuple(_coordinate(j, parents) for j in joints)
+    joint_map = cldyn.JointMap(
+        forward=_Forward(tuple(joints), x.shape[-1] // 2), inverse=_Inverse(coordinates), names=names
+    )
+    return JointStructure(
+        names=names,
+        kinds=tuple(j.kind for j in joints),
+        coordinates=dict(zip(names, coordinates)),
+        joint_map=joint_map,
+        levels=tuple(j.level for j in joints),
+    )
+
+
+def energy_scale(
+    model: cldyn.ConstrainedLagrangian,
+    structure: JointStructure,
+    x: Float[ArrayLike, "N k"],
+    gears: Mapping[str, float],
+    metres_per_unit: float,
+) -> dict:
+    """Joules per unit of a learnt model's energy, from the actuators' known gears.
+
+    A model learnt from images sets its own energy unit (the equations of motion are homogeneous in
+    mass, potential and input gain). Its generalized force per unit control at an actuated joint,
+    $(G^T B(x))_{jj}$ with $G = dF/dq$, against the actuator's gear $g_j$ (newton-metres, or newtons
+    for a slide, per unit control) fixes it: $\\kappa = g_j s_j / (G^T B)_{jj}$, with $s_j$ the
+    metres per keypoint unit for a slide (1 for a hinge). The median over the samples, then over
+    the actuated joints.
+
+    **Returns:** a dict with `joules_per_unit` and, per actuated joint, its own estimate.
+    """
+    x = jnp.asarray(x)
+    if getattr(model, "input_matrix", None) is None:
+        raise ValueError("energy_scale: the model has no input matrix")
+    q = jax.vmap(structure.joint_map.inverse)(x)
+    g = jax.vmap(jax.jacfwd(structure.joint_map.forward))(q)  # dx/dq: (N, k, m)
+    b = jax.vmap(model.input_matrix)(x)  # (N, k, l)
+    per_joint = {}
+    gain = np.asarray(jnp.einsum("nkm,nkl->nml", g, b))  # generalized force at joint m per control l
+    for name, gear in gears.items():
+        if name not in structure.names:
+            continue
+        j = structure.names.index(name)
+        s = metres_per_unit if structure.kinds[j] == "slide" else 1.0
+        column = int(np.argmax(np.abs(np.median(gain[:, j, :], axis=0))))
+        per_joint[name] = float(gear * s / np.median(gain[:, j, column]))
+    if not per_joint:
+        raise ValueError("energy_scale: no actuated joint among the structure's joints")
+    return {"joules_per_unit": float(np.median(list(per_joint.values()))), "per_joint": per_joint}
+
+
+# value in MuJoCo's units = value in the model's units * joules_per_unit * metres_per_unit ** power,
+# the power for a slide joint (a hinge's angle is the same in both)
+_POWERS = {
+    "joint_damping": -2,  # force per velocity
+    "joint_quadratic_damping": -3,  # force per velocity squared
+    "joint_coulomb": -1,  # force
+    "joint_spring": -2,  # force per displacement
+    "joint_armature": -2,  # mass
+}
+
+
+def metres_per_unit(camera) -> float:
+    """Metres in the plane of motion per unit of the image frame, at the image centre (the mean of
+    the two directions): what turns a keypoint length into metres."""
+    step = 1e-3
+    centre = camera.to_plane(np.zeros(2))
+    along = [np.linalg.norm(camera.to_plane(np.asarray(d) * step) - centre) / step for d in ((1, 0), (0, 1))]
+    return float(np.mean(along))
+
+
+def actuator_gears(mjcf_xml: str) -> dict[str, float]:
+    """Joint name -> the gear of the motor that drives it (newton-metres or newtons per unit control)."""
+    from ._scene import _mujoco
+
+    mujoco = _mujoco()
+    model = mujoco.MjModel.from_xml_string(mjcf_xml)
+    gears = {}
+    for a in range(model.nu):
+        if int(model.actuator_trntype[a]) != int(mujoco.mjtTrn.mjTRN_JOINT):
+            continue
+        joint = mujoco.mj_id2name(model, mujoco.mjtObj.mjOBJ_JOINT, int(model.actuator_trnid[a, 0]))
+        gears[joint] = float(model.actuator_gear[a, 0])
+    return gears
+
+
+@dataclasses.dataclass(frozen=True)
+class ImageIdentification:
+    """What `keyvision.identify` found, in the model's units and in MuJoCo's.
+
+    **Fields:**
+
+    - `identification`: `cldyn.identify`'s result on the estimated keypoints (its report, errors and
+      plots, in the model's units: keypoints in the image frame, the model's energy unit).
+    - `effects`: one dict per detected effect: `name`, `where` (the joint), `value` and `ci` in
+      MuJoCo's units (`None` where no conversion applies), `value_model` and `ci_model` in the model's.
+    - `structure`: the `JointStructure` of the keypoints.
+    - `joules_per_unit`, `metres_per_unit`: the conversions (`energy_scale`, `metres_per_unit`).
+    - `model`: the KeyCLD model with the effects added and the dynamics refitted (float64 dynamics).
+    - `images`: on the frames' validation runs (left out of the identification), the VPT (mean and
+      median) and the image MSE over all their frames of the model `before` and `after`; `None`
+      without validation runs.
+    """
+
+    identification: object
+    effects: tuple[dict, ...]
+    structure: JointStructure
+    joules_per_unit: float
+    metres_per_unit: float
+    model: object
+    images: dict | None = None
+
+
+def _convert(name: str, kind: str, value: float, joules: float, metres: float) -> float | None:
+    if name == "actuator_gain":
+        return value  # a ratio of gains: no unit
+    if name not in _POWERS:
+        return None
+    return value * joules * (metres ** _POWERS[name] if kind == "slide" else 1.0)
+
+
+def identify(model, frames, *, progress_meter=None, **options) -> ImageIdentification:
+    """Find the effects that a KeyCLD model learnt from images is missing, from frames of the system.
+
+    The frames are encoded by the model's estimator; the keypoints' constraints give the joints
+    (`keyvision.joint_structure`, named after the scene's MuJoCo joints); `cldyn.identify` runs with
+    the learnt dynamics as the nominal model, in float64; the detected effects are converted to
+    MuJoCo's units with the camera's scale (`metres_per_unit`) and the energy scale fixed by the
+    scene's actuator gears (`energy_scale`). What can be identified from images: effects at the joints
+    (damping, Coulomb friction, springs, armature) and actuator gains, as far as the keypoints resolve
+    the motion; not the absolute masses (the learnt energy unit is set by the gears, so a mass is
+    only known relative to the others).
+
+    **Arguments:**
+
+    - `model`: a `keyvision.KeyCLD` whose dynamics are a `ConstrainedLagrangian` with a planar chain
+      of constraints (KeyCLD's scenes).
+    - `frames`: `keyvision.Frames` of the real system, rendered from a MuJoCo scene
+      (`frames.info["mjcf_xml"]` names the joints and gives the gears): the training runs are
+      identified, the validation runs score the model before and after in images (VPT, MSE).
+    - `progress_meter`: a `cldyn.AbstractProgressMeter`.
+    - `options`: passed on to `cldyn.identify` (`effects`, `criteria`, `seed`, ...).
+
+    **Returns:** a `keyvision.ImageIdentification`. Needs JAX's 64-bit mode
+    (`jax.config.update("jax_enable_x64", True)`); without it a `ValueError` says so.
+    """
+    from ._model import KeyCLD
+
+    if not jax.config.jax_enable_x64:
+        raise ValueError('identify runs in float64: call jax.config.update("jax_enable_x64", True) first')
+    if not isinstance(model, KeyCLD) or not isinstance(model.dynamics, cldyn.ConstrainedLagrangian):
+        raise TypeError("identify: model must be a keyvision.KeyCLD with ConstrainedLagrangian dynamics")
+    xml = frames.info.get("mjcf_xml")
+    if not xml:
+        raise ValueError("identify: the frames carry no MuJoCo scene (frames.info['mjcf_xml'])")
+    from ._data import ImageSequences
+    from ._train import encode_sequences
+
+    measured, held_out = frames.split()
+    if measured.num_runs == 0:
+        raise ValueError(f"identify: all {frames.num_runs} runs of the frames are validation runs")
+    x = np.asarray(encode_sequences(model, ImageSequences.from_frames(measured)).x, dtype=np.float64)
+    dynamics = jax.tree.map(lambda a: a.astype(jnp.float64) if eqx.is_inexact_array(a) else a, model.dynamics)
+    names = list(frames.info.get("joint_names", []))
+    structure = joint_structure(dynamics.constraint, x, names if len(names) else None)
+    # an estimated keypoint is not exactly a rigid point of its body (it slides by a fraction of a
+    # pixel with the pose, which identify's constraint check rejects as a wrong model): the joints
+    # read from the keypoints place a rigid chain of the measured lengths, x = F(q(x))
+    flat = jnp.asarray(x.reshape(-1, x.shape[-1]))
+    rigid = jax.vmap(lambda y: structure.joint_map.forward(structure.joint_map.inverse(y)))(flat)
+    x = np.asarray(rigid).reshape(x.shape)
+    data = cldyn.Sequences(x, np.asarray(measured.u, dtype=np.float64), frames.dt)
+    if progress_meter is not None:
+        options["progress_meter"] = progress_meter
+    options.setdefault("actuator_names", list(frames.info.get("actuator_names", [])) or None)
+    result = cldyn.identify(
+        dynamics, data, joint_coordinates=structure.coordinates, joints=structure.joint_map, **options
+    )
+    metres = metres_per_unit(frames.camera)
+    scale = energy_scale(dynamics, structure, x.reshape(-1, x.shape[-1]), actuator_gears(xml), metres)
+    joules = abs(scale["joules_per_unit"])  # its sign is the hinges' sense against MuJoCo's
+    effects = []
+    for d in result.detected:
+        where = d.candidate.where
+        kind = structure.kinds[structure.names.index(where)] if where in structure.names else ""
+        value = _convert(d.name, kind, d.value, joules, metres)
+        ci = None if value is None else tuple(_convert(d.name, kind, c, joules, metres) for c in d.ci)
+        effects.append(
+            {
+                "name": d.name,
+                "where": d.candidate.where,
+                "value": value,
+                "ci": ci,
+                "value_model": float(d.value),
+                "ci_model": tuple(float(c) for c in d.ci),
+            }
+        )
+    augmented = KeyCLD(model.estimator, result.model, model.renderer)
+    images = _image_errors(model, augmented, held_out) if held_out.num_runs else None
+    return ImageIdentification(result, tuple(effects), structure, joules, metres, augmented, images)
+
+
+def _image_errors(before, after, validation) -> dict:
+    """VPT and image MSE of the model before and after, predicting the validation runs (float32)."""
+    from ._evaluate import predict_runs, prediction_threshold, valid_prediction_time
+
+    images = validation.images(np.float32)
+    controls = validation.u.astype(np.float32)
+    threshold = prediction_threshold(images)
+    record = {"runs": validation.num_runs, "threshold": threshold}
+    for name, model in (("before", before), ("after", after)):
+        model = jax.tree.map(lambda a: a.astype(jnp.float32) if eqx.is_inexact_array(a) else a, model)
+        predicted = predict_runs(model, images, controls, validation.dt)[1]
+        vpt = np.asarray(valid_prediction_time(predicted, images, threshold=threshold))
+        record[name] = {
+            "vpt": {"mean": float(vpt.mean()), "median": float(np.median(vpt))},
+            "mse": float(np.mean((predicted - images) ** 2)),
+        }
+    return record

@@ -1,0 +1,111 @@
+"""The joints of a model learnt from images, read from its constraints, against closed-form chains; the
+energy scale that the actuator gears fix, against a model whose input matrix is known; the unit
+conversions. (The whole path, frames to report, runs in tests/test_keyvision_cli.py.)"""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import cldyn
+import keyvision
+from keyvision._identify import _convert, energy_scale, metres_per_unit
+
+EXACT = 1e-12
+SAMPLES = 40
+L1, L2, RAIL = 0.4, 0.3, 0.15  # link lengths and the rail's height, keypoint units
+
+
+def _wrap(angle):
+    return (np.asarray(angle) + np.pi) % (2 * np.pi) - np.pi
+
+
+def _acrobot(a, b):
+    elbow = np.stack([L1 * np.sin(a), -L1 * np.cos(a)], -1)
+    tip = elbow + np.stack([L2 * np.sin(a + b), -L2 * np.cos(a + b)], -1)
+    return np.concatenate([elbow, tip], -1)
+
+
+def _cartpole(c, a):
+    cart = np.stack([c, np.full_like(c, RAIL)], -1)
+    return np.concatenate([cart, cart + np.stack([L2 * np.sin(a), -L2 * np.cos(a)], -1)], -1)
+
+
+@pytest.fixture
+def angles():
+    rng = np.random.default_rng(0)
+    return rng.uniform(-3, 3, (2, SAMPLES))
+
+
+def test_acrobot_joints_are_the_shoulder_and_the_elbow_relative_to_the_first_link(angles):
+    """Keypoints of a closed-form double pendulum: the shoulder angle from straight down, the elbow's
+    from the first link, the measured lengths, and F(q(x)) = x."""
+    a, b = angles
+    x = _acrobot(a, b)
+    structure = keyvision.joint_structure(cldyn.keycld_constraint("acrobot"), x, ["shoulder", "elbow"])
+    assert structure.kinds == ("hinge", "hinge")
+    np.testing.assert_allclose(structure.levels, [L1, L2], atol=EXACT)
+    q = np.asarray(jax.vmap(structure.joint_map.inverse)(jnp.asarray(x)))
+    np.testing.assert_allclose(q, np.stack([_wrap(a), _wrap(b)], -1), atol=1e-9)
+    np.testing.assert_allclose(jax.vmap(structure.joint_map.forward)(jnp.asarray(q)), x, atol=1e-12)
+    np.testing.assert_allclose(structure.coordinates["elbow"](jnp.asarray(x[0])), _wrap(b[0]), atol=1e-9)
+
+
+def test_cartpole_joints_are_a_slide_and_a_hinge_from_straight_down(angles):
+    c, a = angles[0] / 3, angles[1]
+    x = _cartpole(c, a)
+    structure = keyvision.joint_structure(cldyn.keycld_constraint("cartpole"), x, ["slider", "hinge_1"])
+    assert structure.kinds == ("slide", "hinge")
+    np.testing.assert_allclose(structure.levels, [RAIL, L2], atol=EXACT)
+    q = np.asarray(jax.vmap(structure.joint_map.inverse)(jnp.asarray(x)))
+    np.testing.assert_allclose(q, np.stack([c, _wrap(a)], -1), atol=1e-9)
+    np.testing.assert_allclose(jax.vmap(structure.joint_map.forward)(jnp.asarray(q)), x, atol=1e-12)
+
+
+def test_structures_that_are_not_a_planar_chain_are_refused(angles):
+    x = _acrobot(*angles)
+    twice = cldyn.Stack([cldyn.Anchor(0), cldyn.Distance(1, 0)])
+    with pytest.raises(ValueError, match="keypoint 0 is constrained twice"):
+        keyvision.joint_structure(twice, x)
+    loop = cldyn.Stack([cldyn.Distance(1, 0), cldyn.Distance(0, 1)])
+    with pytest.raises(ValueError, match="loop"):
+        keyvision.joint_structure(loop, x)
+    with pytest.raises(ValueError, match="3 names for the chain's 2 joints"):
+        keyvision.joint_structure(cldyn.keycld_constraint("acrobot"), x, ["a", "b", "c"])
+    # an unconstrained keypoint is two slides
+    free = keyvision.joint_structure(None, x[:, :2])
+    assert free.kinds == ("slide", "slide")
+    np.testing.assert_allclose(jax.vmap(free.joint_map.inverse)(jnp.asarray(x[:, :2])), x[:, :2], atol=EXACT)
+
+
+def test_energy_scale_is_the_gear_over_the_learnt_joint_gain():
+    """A cart-pole whose input matrix pushes the cart along x with `b` per unit control: at the slide,
+    G^T B = b, so kappa = gear * s / b; a hinge driven through the pole's tip at angle 0 gets L2 b2."""
+    b, b2, gear, s = 0.5, 0.25, 4.0, 2.5
+    matrix = jnp.array([[b, 0.0], [0.0, 0.0], [0.0, b2], [0.0, 0.0]])
+    model = cldyn.ConstrainedLagrangian(
+        mass=cldyn.PointMasses(jnp.ones(2)), constraint=cldyn.keycld_constraint("cartpole"),
+        input_matrix=cldyn.ConstantInput(matrix),
+    )
+    x = _cartpole(np.zeros(5), np.zeros(5))  # hanging: the tip moves along x as the pole turns
+    structure = keyvision.joint_structure(model.constraint, x, ["slider", "hinge_1"])
+    scale = energy_scale(model, structure, x, {"slider": gear, "hinge_1": 1.0}, s)
+    assert scale["per_joint"]["slider"] == pytest.approx(gear * s / b, rel=1e-12)
+    assert scale["per_joint"]["hinge_1"] == pytest.approx(1.0 / (L2 * b2), rel=1e-12)
+
+
+def test_effects_convert_to_mujoco_units():
+    """Damping is force per velocity: joules per unit over (metres per unit)^2 on a slide; on a hinge
+    the angle needs no conversion; Coulomb friction is a force; a gain ratio has no unit."""
+    kappa, s = 3.0, 2.0
+    assert _convert("joint_damping", "slide", 0.5, kappa, s) == pytest.approx(0.5 * kappa / s**2)
+    assert _convert("joint_damping", "hinge", 0.5, kappa, s) == pytest.approx(0.5 * kappa)
+    assert _convert("joint_coulomb", "slide", 0.5, kappa, s) == pytest.approx(0.5 * kappa / s)
+    assert _convert("actuator_gain", "", 1.2, kappa, s) == 1.2
+    assert _convert("keypoint_drag", "", 1.2, kappa, s) is None
+
+
+def test_metres_per_unit_of_a_square_camera():
+    """A camera that maps the image frame to the plane by a scale of 1.7 metres per unit."""
+    camera = keyvision.PlanarCamera(np.diag([1.7, 1.7, 1.0]), np.array([[1.0, 0, 0], [0, 0, 1.0]]))
+    assert metres_per_unit(camera) == pytest.approx(1.7, rel=1e-9)
