@@ -9,8 +9,9 @@ instead of training one. A step whose outputs already exist in
 can be spread over several calls. Training images/s counts the frames that pass through the estimator
 in a training step (stage (a): the batch; stage (c): windows x frames), over the stages' wall time.
 
-Writes benchmarks/results/vision.json and vision.md, copies each scene's mse.png, strip.png and
-prediction.gif to benchmarks/results/vision_<scene>_*; prints the JSON.
+Writes benchmarks/results/vision.json and vision.md (scenes not given keep their previous rows), copies
+each scene's mse.png, strip.png and prediction.gif to benchmarks/results/vision_<scene>_*; prints the
+JSON.
 
     python benchmarks/vision.py                       # the three scenes, the CPU recipe
     python benchmarks/vision.py --scenes pendulum --model pendulum=runs/pend
@@ -141,13 +142,25 @@ def main() -> None:
     parser.add_argument("--seed", type=int, default=0)
     add_recipe(parser)
     parser.add_argument(
+        "--note", default=None, help="a paragraph under the table (default: the previous results' note)"
+    )
+    parser.add_argument(
         "--model", action="append", default=[], metavar="SCENE=DIR", help="evaluate this model of SCENE"
     )
     args = parser.parse_args()
     import jax
 
     rows = [scene(name, args) for name in args.scenes]
-    result = {"machine": machine(), "device": str(jax.devices()[0]), "scenes": rows}
+    # the scenes not run this time keep their rows of the previous results (scene order kept)
+    previous = RESULTS / "vision.json"
+    note = args.note
+    if previous.is_file():
+        earlier = json.loads(previous.read_text())
+        note = earlier.get("note", "") if note is None else note
+        kept = {row["scene"]: row for row in earlier.get("scenes", [])}
+        kept.update({row["scene"]: row for row in rows})
+        rows = sorted(kept.values(), key=lambda row: list(PAPER_VPT).index(row["scene"]))
+    result = {"machine": machine(), "device": str(jax.devices()[0]), "scenes": rows, "note": note or ""}
     lines = [
         "# KeyCLD from images",
         "",
@@ -179,6 +192,8 @@ def main() -> None:
         cells += ["-" if drift is None else " / ".join(f"{e:.2f}" for e in drift), f"{size}x{size}"]
         cells += [str(row["width"]), f"{seconds:.0f}", "-" if rate is None else f"{rate:.1f}"]
         lines.append("| " + " | ".join(cells) + " |")
+    if result["note"]:
+        lines += ["", result["note"]]
     write("vision", result, "\n".join(lines) + "\n")
 
 

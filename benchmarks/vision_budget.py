@@ -74,7 +74,8 @@ def main() -> None:
     model = pathlib.Path(args.model)
     out = pathlib.Path(args.out or ROOT / "runs" / "bench-vision-budget" / args.scene)
     spec = json.loads((model / "keyvision.json").read_text())
-    points, elapsed = [], 0.0
+    # a training that started from another's autoencoder (--networks-from) counts that stage's time
+    points, elapsed = [], float((spec.get("networks_from") or {}).get("autoencoder_seconds") or 0.0)
     for stage in stages_run(spec["schedule"]):
         seconds = _stage_seconds(model, stage)
         if seconds is None:

@@ -3,7 +3,7 @@ the effects' values in MuJoCo's units.
 
 A KeyCLD model of a planar chain knows its joints only through its constraints: `Anchor(i)` hinges
 keypoint `i` about a fixed point, `Distance(i, j)` hinges `j` about `i`, `FixedCoordinate(i, axis=1)`
-slides `i` along a horizontal rail. `structure` reads those into joint coordinates and the map from
+slides `i` along a horizontal rail. `joint_structure` reads those into joint coordinates and the map from
 joints to keypoints, with the link lengths measured on the data (the constraints' values along the
 runs: only their Jacobians enter the dynamics, so a learnt model carries no lengths of its own).
 """
@@ -63,7 +63,6 @@ def _chain(constraint, x: np.ndarray) -> list[_Joint]:
         placed_by[child] = leaf
     joints: list[_Joint] = []
     hinged: set[int] = set()  # keypoints placed by a hinge: a child's angle is measured from their link
-    link_parent: dict[int, int | None] = {}
 
     def place(i: int, visiting: tuple[int, ...] = ()) -> None:
         if any(j.keypoint == i for j in joints):
@@ -80,20 +79,17 @@ def _chain(constraint, x: np.ndarray) -> list[_Joint]:
             length = float(np.median(np.linalg.norm(points[:, i] - np.asarray(pivot), axis=-1)))
             joints.append(_Joint("hinge", i, None, False, length, pivot=pivot))
             hinged.add(i)
-            link_parent[i] = None
         elif isinstance(leaf, Distance):
             parent = leaf.first
             place(parent, (*visiting, i))
             length = float(np.median(np.linalg.norm(points[:, i] - points[:, parent], axis=-1)))
             joints.append(_Joint("hinge", i, parent, parent in hinged, length))
             hinged.add(i)
-            link_parent[i] = parent
         else:  # FixedCoordinate: the other coordinate slides
             slide = 1 - leaf.axis
             axis = (1.0, 0.0) if slide == 0 else (0.0, 1.0)
             level = float(np.median(points[:, i, leaf.axis]))
             joints.append(_Joint("slide", i, None, False, level, axis=axis))
-            link_parent[i] = None
 
     for i in range(count):
         place(i)
