@@ -350,12 +350,13 @@ def identify(model, frames, *, progress_meter=None, **options) -> ImageIdentific
     - `options`: passed on to `cldyn.identify` (`effects`, `criteria`, `seed`, ...).
 
     **Returns:** a `keyvision.ImageIdentification`. Needs JAX's 64-bit mode
-    (`jax.config.update("jax_enable_x64", True)`); without it a `ValueError` says so.
+    (as the `keyvision identify` command turns on, and `cldyn.identify` needs); without it a
+    `ValueError` says so.
     """
     from ._model import KeyCLD
 
-    if not jax.config.jax_enable_x64:
-        raise ValueError('identify runs in float64: call jax.config.update("jax_enable_x64", True) first')
+    if jax.dtypes.canonicalize_dtype(jnp.float64) != jnp.float64:
+        raise ValueError("identify runs in float64: turn on JAX's 64-bit mode first")
     if not isinstance(model, KeyCLD) or not isinstance(model.dynamics, cldyn.ConstrainedLagrangian):
         raise TypeError("identify: model must be a keyvision.KeyCLD with ConstrainedLagrangian dynamics")
     xml = frames.info.get("mjcf_xml")
