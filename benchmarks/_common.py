@@ -7,6 +7,12 @@ import pathlib
 import platform
 
 RESULTS = pathlib.Path(__file__).resolve().parent / "results"
+# the models learnt from images that the vision benchmarks use: the shipped pendulum, the committed others
+VISION_MODELS = {
+    "pendulum": RESULTS.parents[1] / "keyvision" / "demo" / "pendulum",
+    "cartpole": RESULTS / "vision_models" / "cartpole",
+    "acrobot": RESULTS / "vision_models" / "acrobot",
+}
 
 
 def machine() -> dict:

@@ -34,13 +34,9 @@ import numpy as np  # noqa: E402
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "benchmarks"))
-from _common import RESULTS, machine, write  # noqa: E402
+from _common import RESULTS, VISION_MODELS, machine, write  # noqa: E402
 
-MODELS = {
-    "pendulum": ROOT / "keyvision" / "demo" / "pendulum",
-    "cartpole": RESULTS / "vision_models" / "cartpole",
-    "acrobot": RESULTS / "vision_models" / "acrobot",
-}
+MODELS = VISION_MODELS
 TURN = np.linspace(0.0, 2 * np.pi, 73)  # every 5 degrees
 RAIL = np.linspace(-1.0, 1.0, 41)  # the training runs start with the cart in U(-1, 1)
 # scene -> [(sequence, parameter values, qpos along it)]; MuJoCo's hinge angle 0 is upright

@@ -25,13 +25,9 @@ os.environ.setdefault("MUJOCO_GL", "egl")
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "benchmarks"))
-from _common import RESULTS, machine, write  # noqa: E402
+from _common import RESULTS, VISION_MODELS, machine, write  # noqa: E402
 
-MODELS = {
-    "pendulum": ROOT / "keyvision" / "demo" / "pendulum",
-    "cartpole": RESULTS / "vision_models" / "cartpole",
-    "acrobot": RESULTS / "vision_models" / "acrobot",
-}
+MODELS = VISION_MODELS
 # (scene, joint, MJCF attribute, value, the effect identify reports)
 CASES = [
     ("pendulum", "hinge", "damping", 0.1, "joint_damping"),
