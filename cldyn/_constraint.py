@@ -15,6 +15,7 @@ import numpy as np
 from jaxtyping import Array, Float
 
 from ._custom_types import ArrayInput, Vector
+from ._linalg import small_matmul
 
 
 class AbstractConstraint(eqx.Module):
@@ -75,12 +76,21 @@ def _row(k: int, dim: int, pieces: tuple[tuple[int, Array], ...], dtype) -> Arra
     return row
 
 
+def _dot(a: Array, b: Array) -> Array:
+    """`a . b` of two short vectors (a keypoint's coordinates), written out as multiply-adds: a
+    reduction is a kernel of its own on CPU, while multiply-adds fuse with the work around them."""
+    out = a[0] * b[0]
+    for i in range(1, a.shape[0]):
+        out = out + a[i] * b[i]
+    return out
+
+
 def _distance_terms(delta: Array, rate: Array) -> tuple[Array, Array, Array]:
     """`|d|`, the unit vector `d/|d|` and the curvature `(|dd|^2 - (u . dd)^2) / |d|` of `|d|`."""
-    length = jnp.sqrt(jnp.sum(delta**2))
+    length = jnp.sqrt(_dot(delta, delta))
     unit = delta / length
-    along = jnp.dot(unit, rate)
-    return length, unit, (jnp.sum(rate**2) - along**2) / length
+    along = _dot(unit, rate)
+    return length, unit, (_dot(rate, rate) - along**2) / length
 
 
 def _point_slice(index: int, dim: int) -> slice:
@@ -137,8 +147,11 @@ class Distance(AbstractConstraint):
     def _delta(self, v: Vector) -> Array:
         return v[_point_slice(self.first, self.dim)] - v[_point_slice(self.second, self.dim)]
 
+    def _segment(self) -> tuple[int, int | None, tuple[float, ...]]:
+        return self.first, self.second, (0.0,) * self.dim
+
     def __call__(self, x: Vector) -> Float[Array, " 1"]:
-        return jnp.sqrt(jnp.sum(self._delta(x) ** 2))[None]
+        return jnp.sqrt(_dot(self._delta(x), self._delta(x)))[None]
 
     def jacobian(self, x: Vector) -> Float[Array, "1 k"]:
         _, unit, _ = _distance_terms(self._delta(x), self._delta(x))
@@ -177,8 +190,11 @@ class Anchor(AbstractConstraint):
     def _delta(self, x: Vector) -> Array:
         return x[_point_slice(self.keypoint, self.dim)] - jnp.asarray(self.point, dtype=x.dtype)
 
+    def _segment(self) -> tuple[int, int | None, tuple[float, ...]]:
+        return self.keypoint, None, self.point
+
     def __call__(self, x: Vector) -> Float[Array, " 1"]:
-        return jnp.sqrt(jnp.sum(self._delta(x) ** 2))[None]
+        return jnp.sqrt(_dot(self._delta(x), self._delta(x)))[None]
 
     def jacobian(self, x: Vector) -> Float[Array, "1 k"]:
         _, unit, _ = _distance_terms(self._delta(x), self._delta(x))
@@ -224,6 +240,73 @@ class FixedCoordinate(AbstractConstraint):
         return jnp.zeros(1, dtype=x.dtype)
 
 
+class _Segments:
+    """The `Distance` and `Anchor` rows of a `Stack`, evaluated together in one vectorised pass.
+
+    Row `r` is the length of the segment whose coordinate `d` is `select[d, r] @ x - offset[d, r]`
+    (`select[d]` picks keypoint `first` minus keypoint `second`, or a fixed point's offset). One
+    reciprocal square root of all squared lengths gives the values, the Jacobian rows and the
+    curvature terms: in the integrator's inner loop every square root is a kernel of its own on CPU
+    (XLA neither duplicates nor merges them), so `m` segments evaluated apart cost `m` times the
+    kernels. The products with `select` are multiply-adds (`small_matmul`), which fuse with the work
+    around them; gathers or stacked slices of `x` were measured slower for one trajectory.
+    """
+
+    def __init__(self, select: np.ndarray, offset: np.ndarray):
+        self.select = select  # (dim, m, k), entries 0, +1, -1
+        self.offset = offset  # (dim, m)
+
+    def _deltas(self, v: Vector, offset: bool) -> list[Array]:
+        out = []
+        for d in range(self.select.shape[0]):
+            delta = small_matmul(jnp.asarray(self.select[d], dtype=v.dtype), v)
+            out.append(delta - jnp.asarray(self.offset[d], dtype=v.dtype) if offset else delta)
+        return out
+
+    def _units(self, x: Vector) -> tuple[Array, Array, list[Array]]:
+        """The squared lengths, their inverse square roots, and the unit vectors by coordinate."""
+        deltas = self._deltas(x, offset=True)
+        squared = sum(delta**2 for delta in deltas)
+        # the value, the Jacobian and the curvature all from the one reciprocal square root
+        inverse = 1 / jnp.sqrt(squared)
+        return squared, inverse, [delta * inverse for delta in deltas]
+
+    def __call__(self, x: Vector) -> Array:
+        squared, inverse, _ = self._units(x)
+        return squared * inverse
+
+    def jacobian(self, x: Vector) -> Array:
+        _, _, units = self._units(x)
+        return sum(unit[:, None] * jnp.asarray(self.select[d], dtype=x.dtype) for d, unit in enumerate(units))
+
+    def curvature(self, x: Vector, xd: Vector) -> Array:
+        _, inverse, units = self._units(x)
+        rates = self._deltas(xd, offset=False)
+        along = sum(unit * rate for unit, rate in zip(units, rates))
+        return (sum(rate**2 for rate in rates) - along**2) * inverse
+
+
+def _segments(constraints: tuple[AbstractConstraint, ...], k: int) -> _Segments | None:
+    """The `Distance` and `Anchor` members of `constraints` as `_Segments`, when there are at least
+    two of them (of one keypoint dimension) and their keypoints lie within `k` coordinates."""
+    members = [c for c in constraints if isinstance(c, Distance | Anchor)]
+    if len(members) < 2 or len({c.dim for c in members}) != 1:
+        return None
+    dim = members[0].dim
+    select = np.zeros((dim, len(members), k))
+    offset = np.zeros((dim, len(members)))
+    for row, member in enumerate(members):
+        first, second, point = member._segment()
+        if dim * (max(first, second or 0) + 1) > k:
+            return None  # out of range: the members' own code reports it
+        for d in range(dim):
+            select[d, row, dim * first + d] = 1.0
+            if second is not None:
+                select[d, row, dim * second + d] = -1.0
+            offset[d, row] = point[d]
+    return _Segments(select, offset)
+
+
 class Stack(AbstractConstraint):
     """Several constraints together: `Phi(x) = [Phi_1(x), Phi_2(x), ...]`.
 
@@ -251,20 +334,34 @@ class Stack(AbstractConstraint):
     def num_constraints(self) -> int:
         return sum(c.num_constraints for c in self.constraints)
 
+    def _rows(self, x: Vector, each, together) -> list[Array]:
+        """The members' rows in order: `each(member)` for a member on its own, rows of
+        `together(segments)` for the `Distance` and `Anchor` members evaluated together."""
+        segments = _segments(self.constraints, x.shape[0])
+        joint = None if segments is None else together(segments)
+        rows, row = [], 0
+        for c in self.constraints:
+            if segments is not None and isinstance(c, Distance | Anchor):
+                rows.append(joint[row : row + 1])
+                row += 1
+            else:
+                rows.append(each(c))
+        return rows
+
     def __call__(self, x: Vector) -> Float[Array, " n"]:
         if not self.constraints:
             return jnp.zeros(0, dtype=x.dtype)
-        return jnp.concatenate([c(x) for c in self.constraints])
+        return jnp.concatenate(self._rows(x, lambda c: c(x), lambda s: s(x)))
 
     def jacobian(self, x: Vector) -> Float[Array, "n k"]:
         if not self.constraints:
             return jnp.zeros((0, x.shape[0]), dtype=x.dtype)
-        return jnp.concatenate([c.jacobian(x) for c in self.constraints], axis=0)
+        return jnp.concatenate(self._rows(x, lambda c: c.jacobian(x), lambda s: s.jacobian(x)), axis=0)
 
     def curvature(self, x: Vector, xd: Vector) -> Float[Array, " n"]:
         if not self.constraints:
             return jnp.zeros(0, dtype=x.dtype)
-        return jnp.concatenate([c.curvature(x, xd) for c in self.constraints])
+        return jnp.concatenate(self._rows(x, lambda c: c.curvature(x, xd), lambda s: s.curvature(x, xd)))
 
 
 class FromFunction(_AbstractAutodiffConstraint):

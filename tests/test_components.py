@@ -109,6 +109,31 @@ def test_jacobian_and_curvature_match_autodiff_of_phi(constraint):
         assert np.allclose(closed, autodiff, atol=CURVATURE_TOL)
 
 
+@pytest.mark.parametrize("keypoints", [3, 5], ids=["unrolled", "dot"])
+def test_stack_of_segments_matches_its_members(keypoints):
+    # Distance and Anchor rows of a Stack are evaluated together in one pass; interleaved with other
+    # rows, in 3-D, with keypoints enough that the selection is an ordinary product (k = 15 > 12)
+    members = [
+        cldyn.Distance(0, 1, dim=3),
+        cldyn.FixedCoordinate(1, axis=2, dim=3),
+        cldyn.Anchor(2, jnp.array([0.3, -0.2, 0.5]), dim=3),
+        cldyn.Distance(keypoints - 1, 0, dim=3),
+        cldyn.Anchor(1, dim=3),
+    ]
+    stack = cldyn.Stack(members)
+    rng = np.random.default_rng(4)
+    x, xd = jnp.asarray(rng.normal(size=3 * keypoints)), jnp.asarray(rng.normal(size=3 * keypoints))
+    values = np.concatenate([np.asarray(c(x)) for c in members])
+    rows = np.concatenate([np.asarray(c.jacobian(x)) for c in members])
+    curvatures = np.concatenate([np.asarray(c.curvature(x, xd)) for c in members])
+    assert np.allclose(stack(x), values, rtol=EXACT_RTOL)
+    assert np.allclose(stack.jacobian(x), rows, rtol=EXACT_RTOL, atol=EXACT_ATOL)
+    assert np.allclose(stack.curvature(x, xd), curvatures, rtol=EXACT_RTOL, atol=EXACT_ATOL)
+    assert np.allclose(stack.jacobian(x), jax.jacfwd(stack)(x), atol=CURVATURE_TOL)
+    hessian_term = jnp.einsum("nij,i,j->n", jax.hessian(stack)(x), xd, xd)
+    assert np.allclose(stack.curvature(x, xd), hessian_term, atol=CURVATURE_TOL)
+
+
 def test_constraint_arguments_are_checked():
     with pytest.raises(ValueError, match="two different keypoints"):
         cldyn.Distance(1, 1)
