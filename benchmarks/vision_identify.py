@@ -7,11 +7,12 @@ and runs `keyvision.identify`: the detected effect and joint, its value in MuJoC
 truth, and the held-out VPT and image MSE before and after. Negative controls: the same scenes with
 nothing injected, `--seeds` seeds each.
 
-Writes benchmarks/results/vision_identify.{json,md} (scenes not given keep their previous rows); prints
-the JSON.
+Writes benchmarks/results/vision_identify.{json,md} (cases and negative controls not run keep their
+previous rows); prints the JSON.
 
     python benchmarks/vision_identify.py                       # every case
     python benchmarks/vision_identify.py --scenes pendulum     # one scene's cases
+    python benchmarks/vision_identify.py --scenes pendulum --attributes frictionloss --seeds 0
 """
 
 import argparse
@@ -32,6 +33,7 @@ MODELS = VISION_MODELS
 CASES = [
     ("pendulum", "hinge", "damping", 0.1, "joint_damping"),
     ("pendulum", "hinge", "armature", 0.05, "joint_armature"),
+    ("pendulum", "hinge", "frictionloss", 0.3, "joint_coulomb"),
     ("cartpole", "slider", "damping", 1.0, "joint_damping"),
     ("cartpole", "hinge_1", "damping", 0.01, "joint_damping"),
     ("acrobot", "elbow", "damping", 0.1, "joint_damping"),
@@ -74,13 +76,16 @@ def main() -> None:
     parser.add_argument("--runs", type=int, default=60)
     parser.add_argument("--validation-runs", type=int, default=10)
     parser.add_argument("--seeds", type=int, default=5, help="seeds of the effect-free data per scene")
+    parser.add_argument(
+        "--attributes", nargs="+", help="only the cases that inject these MJCF attributes (all by default)"
+    )
     args = parser.parse_args()
     import jax
 
     jax.config.update("jax_enable_x64", True)
     rows, negatives = [], []
     for scene, joint, attribute, value, effect in CASES:
-        if scene not in args.scenes:
+        if scene not in args.scenes or (args.attributes and attribute not in args.attributes):
             continue
         found = _case(scene, {joint: {attribute: value}}, 7, args)
         top = found["effects"][0] if found["effects"] else None
@@ -101,12 +106,15 @@ def main() -> None:
         for seed in range(args.seeds):
             negatives.append({"scene": scene, "seed": seed, **_case(scene, None, seed, args)})
     previous = RESULTS / "vision_identify.json"
-    if previous.is_file():  # the scenes not run this time keep their previous rows
+    case = lambda r: (r["scene"], r["joint"], r["attribute"])
+    if previous.is_file():  # the cases and negative controls not run this time keep their previous rows
         earlier = json.loads(previous.read_text())
-        rows = [r for r in earlier.get("cases", []) if r["scene"] not in args.scenes] + rows
-        negatives = [n for n in earlier.get("negatives", []) if n["scene"] not in args.scenes] + negatives
+        negative = lambda n: (n["scene"], n["seed"])
+        ran = {case(r) for r in rows} | {negative(n) for n in negatives}
+        rows = [r for r in earlier.get("cases", []) if case(r) not in ran] + rows
+        negatives = [n for n in earlier.get("negatives", []) if negative(n) not in ran] + negatives
     order = list(MODELS)
-    rows.sort(key=lambda r: order.index(r["scene"]))
+    rows.sort(key=lambda r: (order.index(r["scene"]), [c[:3] for c in CASES].index(case(r))))
     negatives.sort(key=lambda n: (order.index(n["scene"]), n["seed"]))
     scenes = [scene for scene in order if any(n["scene"] == scene for n in negatives)]
     result = {
