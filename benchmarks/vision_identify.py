@@ -66,6 +66,7 @@ def _case(scene: str, joints: dict | None, seed: int, args) -> dict:
         "rollout_1s": [report.before.rollout_rmse_1s, report.after.rollout_rmse_1s],
         "images": result.images,
         "joules_per_unit": result.joules_per_unit,
+        "energy_spread": result.energy_spread,
         "seconds": round(time.perf_counter() - started, 1),
     }
 

@@ -232,10 +232,12 @@ def energy_scale(
     mass, potential and input gain). Its generalized force per unit control at an actuated joint,
     $(G^T B(x))_{jj}$ with $G = dF/dq$, against the actuator's gear $g_j$ (newton-metres, or newtons
     for a slide, per unit control) fixes it: $\\kappa = g_j s_j / (G^T B)_{jj}$, with $s_j$ the
-    metres per keypoint unit for a slide (1 for a hinge). The median over the samples, then over
-    the actuated joints.
+    metres per keypoint unit for a slide (1 for a hinge). The median over the samples, then of the
+    magnitudes over the actuated joints (a hinge's sign is its angle's sense against MuJoCo's).
 
-    **Returns:** a dict with `joules_per_unit` and, per actuated joint, its own estimate.
+    **Returns:** a dict with `joules_per_unit`, per actuated joint its own (signed) estimate, and
+    `spread`, the largest magnitude over the smallest: about 1 for a model calibrated in energy
+    across its joints; far from 1, values converted with it are not to be trusted.
     """
     x = jnp.asarray(x)
     if getattr(model, "input_matrix", None) is None:
@@ -254,7 +256,13 @@ def energy_scale(
         per_joint[name] = float(gear * s / np.median(gain[:, j, column]))
     if not per_joint:
         raise ValueError("energy_scale: no actuated joint among the structure's joints")
-    return {"joules_per_unit": float(np.median(list(per_joint.values()))), "per_joint": per_joint}
+    # a hinge's estimate carries the sign of its angle's sense against MuJoCo's: the magnitudes agree
+    magnitudes = np.abs(list(per_joint.values()))
+    return {
+        "joules_per_unit": float(np.median(magnitudes)),
+        "per_joint": per_joint,
+        "spread": float(magnitudes.max() / magnitudes.min()),
+    }
 
 
 # value in MuJoCo's units = value in the model's units * joules_per_unit * metres_per_unit ** power,
@@ -304,6 +312,8 @@ class ImageIdentification:
       MuJoCo's units (`None` where no conversion applies), `value_model` and `ci_model` in the model's.
     - `structure`: the `JointStructure` of the keypoints.
     - `joules_per_unit`, `metres_per_unit`: the conversions (`energy_scale`, `metres_per_unit`).
+    - `energy_spread`: how far the actuated joints' own energy scales disagree (`energy_scale`'s
+      `spread`, 1 for one actuated joint): far from 1, the values in MuJoCo's units are unreliable.
     - `model`: the KeyCLD model with the effects added and the dynamics refitted (float64 dynamics).
     - `images`: on the frames' validation runs (left out of the identification), the VPT (mean and
       median) and the image MSE over all their frames of the model `before` and `after`; `None`
@@ -317,6 +327,7 @@ class ImageIdentification:
     metres_per_unit: float
     model: object
     images: dict | None = None
+    energy_spread: float = 1.0
 
 
 def _convert(name: str, kind: str, value: float, joules: float, metres: float) -> float | None:
@@ -387,7 +398,7 @@ def identify(model, frames, *, progress_meter=None, **options) -> ImageIdentific
     )
     metres = metres_per_unit(frames.camera)
     scale = energy_scale(dynamics, structure, x.reshape(-1, x.shape[-1]), actuator_gears(xml), metres)
-    joules = abs(scale["joules_per_unit"])  # its sign is the hinges' sense against MuJoCo's
+    joules = scale["joules_per_unit"]
     effects = []
     for d in result.detected:
         where = d.candidate.where
@@ -406,7 +417,9 @@ def identify(model, frames, *, progress_meter=None, **options) -> ImageIdentific
         )
     augmented = KeyCLD(model.estimator, result.model, model.renderer)
     images = _image_errors(model, augmented, held_out) if held_out.num_runs else None
-    return ImageIdentification(result, tuple(effects), structure, joules, metres, augmented, images)
+    return ImageIdentification(
+        result, tuple(effects), structure, joules, metres, augmented, images, scale["spread"]
+    )
 
 
 def _image_errors(before, after, validation) -> dict:

@@ -92,6 +92,9 @@ def test_energy_scale_is_the_gear_over_the_learnt_joint_gain():
     scale = energy_scale(model, structure, x, {"slider": gear, "hinge_1": 1.0}, s)
     assert scale["per_joint"]["slider"] == pytest.approx(gear * s / b, rel=1e-12)
     assert scale["per_joint"]["hinge_1"] == pytest.approx(1.0 / (L2 * b2), rel=1e-12)
+    magnitudes = sorted(abs(v) for v in scale["per_joint"].values())
+    assert scale["joules_per_unit"] == pytest.approx(np.mean(magnitudes), rel=1e-12)  # median of two
+    assert scale["spread"] == pytest.approx(magnitudes[1] / magnitudes[0], rel=1e-12)
 
 
 def test_effects_convert_to_mujoco_units():

@@ -78,6 +78,7 @@ def run(args: argparse.Namespace) -> int:
         "joints": dict(zip(result.structure.names, result.structure.kinds)),
         "joules_per_unit": result.joules_per_unit,
         "metres_per_unit": result.metres_per_unit,
+        "energy_spread": result.energy_spread,
         "images": result.images,
     }
     atomic_write(out / "effects.json", json.dumps(record, indent=1))
