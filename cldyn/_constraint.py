@@ -15,7 +15,6 @@ import numpy as np
 from jaxtyping import Array, Float
 
 from ._custom_types import ArrayInput, Vector
-from ._linalg import small_matmul
 
 
 class AbstractConstraint(eqx.Module):
@@ -248,8 +247,9 @@ class _Segments:
     reciprocal square root of all squared lengths gives the values, the Jacobian rows and the
     curvature terms: in the integrator's inner loop every square root is a kernel of its own on CPU
     (XLA neither duplicates nor merges them), so `m` segments evaluated apart cost `m` times the
-    kernels. The products with `select` are multiply-adds (`small_matmul`), which fuse with the work
-    around them; gathers or stacked slices of `x` were measured slower for one trajectory.
+    kernels. The products with `select` are multiply-adds over the coordinates that
+    the segments use, which fuse with the work around them; gathers or stacked slices of `x` were
+    measured slower for one trajectory.
     """
 
     def __init__(self, select: np.ndarray, offset: np.ndarray):
@@ -259,7 +259,9 @@ class _Segments:
     def _deltas(self, v: Vector, offset: bool) -> list[Array]:
         out = []
         for d in range(self.select.shape[0]):
-            delta = small_matmul(jnp.asarray(self.select[d], dtype=v.dtype), v)
+            # multiply-adds over the coordinates that some segment uses (the others' columns are 0)
+            columns = np.flatnonzero(np.any(self.select[d] != 0, axis=0))
+            delta = sum(jnp.asarray(self.select[d][:, j], dtype=v.dtype) * v[int(j)] for j in columns)
             out.append(delta - jnp.asarray(self.offset[d], dtype=v.dtype) if offset else delta)
         return out
 
