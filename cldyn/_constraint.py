@@ -247,9 +247,9 @@ class _Segments:
     reciprocal square root of all squared lengths gives the values, the Jacobian rows and the
     curvature terms: in the integrator's inner loop every square root is a kernel of its own on CPU
     (XLA neither duplicates nor merges them), so `m` segments evaluated apart cost `m` times the
-    kernels. The products with `select` are multiply-adds over the coordinates that
-    the segments use, which fuse with the work around them; gathers or stacked slices of `x` were
-    measured slower for one trajectory.
+    kernels. The products with `select` are multiply-adds over the coordinates that the segments
+    use, which fuse with the work around them; gathers or stacked slices of `x` were measured slower
+    for one trajectory.
     """
 
     def __init__(self, select: np.ndarray, offset: np.ndarray):
