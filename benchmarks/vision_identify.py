@@ -35,6 +35,7 @@ CASES = [
     ("pendulum", "hinge", "armature", 0.05, "joint_armature"),
     ("pendulum", "hinge", "frictionloss", 0.3, "joint_coulomb"),
     ("cartpole", "slider", "damping", 1.0, "joint_damping"),
+    ("cartpole", "slider", "damping", 3.0, "joint_damping"),
     ("cartpole", "hinge_1", "damping", 0.01, "joint_damping"),
     ("acrobot", "elbow", "damping", 0.1, "joint_damping"),
     ("acrobot", "shoulder", "damping", 0.1, "joint_damping"),
@@ -107,7 +108,7 @@ def main() -> None:
         for seed in range(args.seeds):
             negatives.append({"scene": scene, "seed": seed, **_case(scene, None, seed, args)})
     previous = RESULTS / "vision_identify.json"
-    case = lambda r: (r["scene"], r["joint"], r["attribute"])
+    case = lambda r: (r["scene"], r["joint"], r["attribute"], r["truth"])
     if previous.is_file():  # the cases and negative controls not run this time keep their previous rows
         earlier = json.loads(previous.read_text())
         negative = lambda n: (n["scene"], n["seed"])
@@ -115,7 +116,7 @@ def main() -> None:
         rows = [r for r in earlier.get("cases", []) if case(r) not in ran] + rows
         negatives = [n for n in earlier.get("negatives", []) if negative(n) not in ran] + negatives
     order = list(MODELS)
-    rows.sort(key=lambda r: (order.index(r["scene"]), [c[:3] for c in CASES].index(case(r))))
+    rows.sort(key=lambda r: (order.index(r["scene"]), [c[:4] for c in CASES].index(case(r))))
     negatives.sort(key=lambda n: (order.index(n["scene"]), n["seed"]))
     scenes = [scene for scene in order if any(n["scene"] == scene for n in negatives)]
     result = {

@@ -311,7 +311,9 @@ class ImageIdentification:
     - `effects`: one dict per detected effect: `name`, `where` (the joint), `value` and `ci` in
       MuJoCo's units (`None` where no conversion applies), `value_model` and `ci_model` in the model's.
     - `structure`: the `JointStructure` of the keypoints.
-    - `joules_per_unit`, `metres_per_unit`: the conversions (`energy_scale`, `metres_per_unit`).
+    - `joules_per_unit`, `metres_per_unit`: the conversions (`energy_scale`, `metres_per_unit`). An
+      effect at an actuated joint converts with that joint's own energy scale (its motor's gear), any
+      other with `joules_per_unit`.
     - `energy_spread`: how far the actuated joints' own energy scales disagree (`energy_scale`'s
       `spread`, 1 for one actuated joint): far from 1, the values in MuJoCo's units are unreliable.
     - `model`: the KeyCLD model with the effects added and the dynamics refitted (float64 dynamics).
@@ -328,6 +330,15 @@ class ImageIdentification:
     model: object
     images: dict | None = None
     energy_spread: float = 1.0
+
+
+def _joules_at(where: str, scale: dict) -> float:
+    """The energy scale that converts an effect at joint `where`: that joint's own, from its motor's
+    gear, where it is actuated (a force at a joint and the motor's force there are compared in the
+    same direction, whatever the learnt model's calibration elsewhere); the median over the actuated
+    joints otherwise."""
+    own = scale["per_joint"].get(where)
+    return abs(own) if own is not None else scale["joules_per_unit"]
 
 
 def _convert(name: str, kind: str, value: float, joules: float, metres: float) -> float | None:
@@ -403,8 +414,9 @@ def identify(model, frames, *, progress_meter=None, **options) -> ImageIdentific
     for d in result.detected:
         where = d.candidate.where
         kind = structure.kinds[structure.names.index(where)] if where in structure.names else ""
-        value = _convert(d.name, kind, d.value, joules, metres)
-        ci = None if value is None else tuple(_convert(d.name, kind, c, joules, metres) for c in d.ci)
+        at = _joules_at(where, scale)
+        value = _convert(d.name, kind, d.value, at, metres)
+        ci = None if value is None else tuple(_convert(d.name, kind, c, at, metres) for c in d.ci)
         effects.append(
             {
                 "name": d.name,

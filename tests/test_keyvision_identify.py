@@ -9,7 +9,7 @@ import pytest
 
 import cldyn
 import keyvision
-from keyvision._identify import _convert, energy_scale, metres_per_unit
+from keyvision._identify import _convert, _joules_at, energy_scale, metres_per_unit
 
 EXACT = 1e-12
 SAMPLES = 40
@@ -95,6 +95,10 @@ def test_energy_scale_is_the_gear_over_the_learnt_joint_gain():
     magnitudes = sorted(abs(v) for v in scale["per_joint"].values())
     assert scale["joules_per_unit"] == pytest.approx(np.mean(magnitudes), rel=1e-12)  # median of two
     assert scale["spread"] == pytest.approx(magnitudes[1] / magnitudes[0], rel=1e-12)
+    # an effect at an actuated joint converts with that joint's own scale, elsewhere with the median
+    assert _joules_at("slider", scale) == pytest.approx(gear * s / b, rel=1e-12)
+    assert _joules_at("hinge_1", scale) == pytest.approx(1.0 / (L2 * b2), rel=1e-12)
+    assert _joules_at("elbow", scale) == scale["joules_per_unit"]
 
 
 def test_effects_convert_to_mujoco_units():
