@@ -329,3 +329,22 @@ def test_identify_rejects_bad_input():
         cldyn.identify(system, data, joint_coordinates=coordinates, holdout=1.5)
     with pytest.raises(TypeError, match="Sequences"):
         cldyn.identify(system, np.asarray(data.x), joint_coordinates=coordinates)
+
+
+
+@pytest.mark.parametrize("potential", [True, False])
+def test_refit_holds_the_potential_when_asked(potential):
+    """`refit_potential=False` (what keyvision uses for a learnt potential): the dissipation is free in
+    the refit, the potential only when asked, the mass never."""
+    import equinox as eqx
+
+    from cldyn._identify.refit import _refit_filter
+
+    system, _ = cldyn.systems.pendulum()
+    damping = cldyn.JointDamping([cldyn.HingeAngle(child=(None, 0))], jnp.asarray([0.1]))
+    damped = eqx.tree_at(lambda s: s.dissipation, system, damping, is_leaf=lambda v: v is None)
+    spec = _refit_filter(damped, potential)
+    free = lambda part: any(jax.tree.leaves(part))
+    assert free(spec.dissipation)
+    assert free(spec.potential) is potential
+    assert not free(spec.mass)

@@ -124,6 +124,7 @@ def identify(
     max_rounds: int = 3,
     max_effects: int = 4,
     horizon: float = 1.0,
+    refit_potential: bool = True,
     seed: int = 0,
     progress_meter: AbstractProgressMeter = NoProgressMeter(),
 ) -> Identification:
@@ -175,6 +176,9 @@ def identify(
     - `max_rounds`: rounds of detect-augment-refit.
     - `max_effects`: the most effects selected in one round.
     - `horizon`: rollout length (seconds) for `rollout_rmse_1s`.
+    - `refit_potential`: refit the potential with the detected effects (step 3); `False` holds it as
+      the nominal model has it, for a potential learnt from far more data than `data` (a neural
+      potential refitted on a few dozen runs fits them at the expense of other motions).
     - `seed`: for the split, the bootstrap and the simulated noise of the adequacy check.
     - `progress_meter`: how to report progress (`cldyn.TextProgressMeter()`, ...); silent by default.
 
@@ -317,7 +321,10 @@ def identify(
             def trial_of(detections):
                 """The model with `detections` added and refitted, and its held-out errors."""
                 augmented = augment(current, detections, context)
-                augmented, solved = refit(augmented, fit_data, joints, weights, tests, kept=kept[fit_runs])
+                augmented, solved = refit(
+                    augmented, fit_data, joints, weights, tests,
+                    kept=kept[fit_runs], potential=refit_potential,
+                )
                 found, _, curve = errors(augmented, held_data, horizon, tests, kept[held])
                 return augmented, solved, found, curve
 
@@ -386,6 +393,7 @@ def identify(
         "excluded_equations": float(1.0 - np.mean(kept)),
         "criteria": criteria.to_dict(),
         "bootstrap": bootstrap,
+        "refit_potential": refit_potential,
         "effects": [e.name for e in effects],
         "effect_options": {
             e.name: {f.name: getattr(e, f.name) for f in dataclasses.fields(e)}

@@ -49,12 +49,13 @@ def augment(
     return model
 
 
-def _refit_filter(model: ConstrainedLagrangian):
-    """Refit the potential, the dissipation and the armature; the mass matrix and the actuator gears
-    stay put, since the equations of motion are homogeneous in (M, V, g, F): one of them must fix the
-    scale."""
+def _refit_filter(model: ConstrainedLagrangian, potential: bool = True):
+    """Refit the potential (unless `potential` is false), the dissipation and the armature; the mass
+    matrix and the actuator gears stay put, since the equations of motion are homogeneous in
+    (M, V, g, F): one of them must fix the scale."""
     spec = jax.tree_util.tree_map(lambda _: False, model)
-    for where in (lambda s: s.potential, lambda s: s.dissipation, lambda s: s.armature):
+    parts = [lambda s: s.dissipation, lambda s: s.armature]
+    for where in ([lambda s: s.potential] if potential else []) + parts:
         part = where(model)
         if part is None:
             continue
@@ -77,17 +78,19 @@ def refit(
     *,
     kept: np.ndarray | None = None,
     max_steps: int | None = None,
+    potential: bool = True,
 ) -> tuple[ConstrainedLagrangian, optx.RESULTS]:
     """Least-squares refit of the weighted weak joint-space residual (optimistix).
 
     Levenberg-Marquardt for parametric models; for larger ones (a neural potential), whose Jacobian
     would not fit in memory, BFGS on the sum of squares, which needs gradients only. A refit that
     stops short (at `max_steps`) keeps its last iterate: the caller reports the `result`. `kept`
-    `(runs, n)` says which weak equations count (all by default).
+    `(runs, n)` says which weak equations count (all by default). `potential=False` holds the
+    potential fixed.
 
     **Returns:** `(model, result)`, with the optimistix `RESULTS` of the solve.
     """
-    spec = _refit_filter(model)
+    spec = _refit_filter(model, potential)
     params, static = eqx.partition(model, spec)
     size = sum(leaf.size for leaf in jax.tree_util.tree_leaves(params))
     if size == 0:
