@@ -284,6 +284,14 @@ class EnergyShaping(AbstractControl):
       damping coefficient in N s/m whatever the scale of `g`; `OutputDampingInjection()` injects
       `-k_d g^T xd` on the passive output as eq. 32 prints it. The strings `"keypoint"` and `"output"`
       are shorthands for them.
+    - `metric`: the metric of the shaped potential and of keypoint damping. `"euclidean"` (default)
+      is eq. 32: $V_d = \tfrac12 k_p |x - x^*|^2$ and damping force $-k_d \dot x$. `"mass"` weighs both
+      by the constant mass matrix $M$: $V_d = \tfrac12 k_p (x - x^*)^T M (x - x^*)$ and $-k_d M \dot x$,
+      so that near the target every mode obeys $\ddot e + k_d \dot e + k_p e = 0$ (fully actuated,
+      exact potential): the gains are rates (`kp` in 1/s², `kd` in 1/s) whatever the masses. A
+      Lagrangian learnt from images is only defined up to a factor (`M`, `V` and `g` scaled together
+      give the same motion), and eq. 32's gains act differently at each factor; with `"mass"` the
+      controls do not depend on it. Needs `damping="keypoint"`.
 
     Call it as a feedback policy `u = controller(t, x, xd)`, e.g. `cldyn.simulate(...,
     control=controller)`.
@@ -305,6 +313,7 @@ class EnergyShaping(AbstractControl):
     limit: float | None = eqx.field(static=True)
     project: bool = eqx.field(static=True)
     damping: AbstractDampingInjection
+    metric: str = eqx.field(static=True)
     depends_on_state = True
 
     def __init__(
@@ -317,6 +326,7 @@ class EnergyShaping(AbstractControl):
         limit: float | None = None,
         project: bool = True,
         damping: AbstractDampingInjection | str = KeypointDampingInjection(),
+        metric: str = "euclidean",
     ):
         if not isinstance(system, ConstrainedLagrangian):
             raise TypeError(f"system must be a ConstrainedLagrangian, got {type(system).__name__}")
@@ -339,10 +349,24 @@ class EnergyShaping(AbstractControl):
         if not isinstance(damping, AbstractDampingInjection):
             raise TypeError(f"damping must be an AbstractDampingInjection, got {type(damping).__name__}")
         self.damping = damping
+        if metric not in ("euclidean", "mass"):
+            raise ValueError(f"metric must be 'euclidean' or 'mass', got {metric!r}")
+        if metric == "mass" and not isinstance(damping, KeypointDampingInjection):
+            raise ValueError(
+                "metric='mass' weighs the keypoint damping force by the mass matrix: it needs "
+                f"damping='keypoint', got {type(damping).__name__}"
+            )
+        self.metric = metric
+
+    def _weigh(self, v: Vector) -> Vector:
+        """`v` in the metric: `M v` for `"mass"`, `v` itself for `"euclidean"`."""
+        return self.system.mass.matrix() @ v if self.metric == "mass" else v
 
     def shaped_potential(self, x: Vector) -> Float[Array, ""]:
-        """The desired potential $V_d(x) = \\tfrac12 k_p |x - x^*|^2$ (eq. 31)."""
-        return 0.5 * self.kp * jnp.sum((x - self.x_target) ** 2)
+        """The desired potential $V_d(x) = \\tfrac12 k_p (x - x^*)^T W (x - x^*)$ (eq. 31), `W` the
+        identity or, with `metric="mass"`, the mass matrix."""
+        e = x - self.x_target
+        return 0.5 * self.kp * jnp.dot(e, self._weigh(e))
 
     def __call__(self, t, x: Vector, xd: Vector) -> Control:
         """The control `u(t, x, xd)`, shape `(l,)`."""
@@ -355,12 +379,12 @@ class EnergyShaping(AbstractControl):
                 [lx.linear_solve(normal, jac @ g[:, j], SmallDense()).value for j in range(g.shape[1])],
                 axis=1,
             )
-        grad_v = (
-            self.system.potential.gradient(x) if self.system.potential is not None else jnp.zeros_like(x)
-        )
-        force = grad_v - self.kp * (x - self.x_target)
+        grad_v = self.system.potential.gradient(x) if self.system.potential is not None else jnp.zeros_like(x)
+        force = grad_v - self.kp * self._weigh(x - self.x_target)
         gram = lx.MatrixLinearOperator(g.T @ g, lx.positive_semidefinite_tag)
-        u = self.damping(lambda f: lx.linear_solve(gram, g.T @ f, SmallDense()).value, force, g, xd, self.kd)
+        match = lambda f: lx.linear_solve(gram, g.T @ f, SmallDense()).value  # noqa: E731
+        # keypoint damping is `match(force - kd * xd)`: in the mass metric, `xd` weighed
+        u = self.damping(match, force, g, self._weigh(xd), self.kd)
         if self.limit is not None:
             u = jnp.clip(u, -self.limit, self.limit)
         return u

@@ -72,7 +72,9 @@ class FramePolicy(eqx.Module):
       (KeyCLD, KeyCLD-NC) with a potential and an input matrix.
     - `target`: the target keypoints `(2K,)`, or a target frame `(H, W, 3)` (see `image_target`).
     - `dt`: the time between frames, in seconds (the control period).
-    - `kp`, `kd`, `limit`, `damping`: as `cldyn.EnergyShaping` (the paper: `kp = 5`, `kd = 2`).
+    - `kp`, `kd`, `limit`, `damping`, `metric`: as `cldyn.EnergyShaping` (the paper: `kp = 5`,
+      `kd = 2`, `metric="euclidean"`). A Lagrangian learnt from images has an arbitrary scale, at
+      which eq. 32's gains act: `metric="mass"` makes them rates that do not depend on it.
 
     !!! example
 
@@ -97,6 +99,7 @@ class FramePolicy(eqx.Module):
         kd: float = 2.0,
         limit: float | None = None,
         damping: str = "keypoint",
+        metric: str = "euclidean",
     ):
         if not isinstance(model, KeyCLD):
             raise TypeError(f"FramePolicy: model must be a keyvision.KeyCLD, got {type(model).__name__}")
@@ -113,7 +116,7 @@ class FramePolicy(eqx.Module):
         dtype = parameter_dtype(model.dynamics)
         self.model = model
         self.controller = cldyn.EnergyShaping(
-            model.dynamics, target.astype(dtype), kp, kd, limit=limit, damping=damping
+            model.dynamics, target.astype(dtype), kp, kd, limit=limit, damping=damping, metric=metric
         )
         self.dt = float(dt)
 
@@ -204,6 +207,7 @@ def swing_up(
     kp: float = 5.0,
     kd: float = 2.0,
     limit: float | None = None,
+    metric: str = "euclidean",
     runs: int = 20,
     duration: float = 10.0,
     tolerance: float = 0.05,
@@ -233,7 +237,9 @@ def swing_up(
     - `scene`: what `keyvision.render` accepts (`"keycld/pendulum"`, an MJCF, ...).
     - `observe`: `"frames"` (the policy sees rendered frames) or `"state"` (true state, for reference).
     - `target`: a target frame `(H, W, 3)`; by default the scene rendered in its upright posture.
-    - `kp`, `kd`, `limit`: the controller's gains and saturation (`cldyn.EnergyShaping`).
+    - `kp`, `kd`, `limit`, `metric`: the controller's gains, saturation and metric
+      (`cldyn.EnergyShaping`; `metric="mass"` for gains that do not depend on the learnt Lagrangian's
+      arbitrary scale).
     - `runs`, `duration`, `tolerance`, `perturbation`, `seed`: the protocol.
     - `dt`: the control period; by default the frame interval of `keyvision.render`'s protocol for
       the scene (its timestep: 0.02 s for the pendulum, 0.01 s for the cart-pole and the acrobot).
@@ -279,7 +285,7 @@ def swing_up(
         target_world = _true_keypoints(setup, data)
         renderer.update_scene(data, camera=setup.camera)
         target_frame = renderer.render().copy() if target is None else np.asarray(target)
-        policy = FramePolicy(model, target_frame, frame_dt, kp=kp, kd=kd, limit=limit)
+        policy = FramePolicy(model, target_frame, frame_dt, kp=kp, kd=kd, limit=limit, metric=metric)
         physics = setup.model
         physics.opt.timestep = physics_dt
         physics.opt.integrator = mujoco.mjtIntegrator.mjINT_RK4
@@ -375,6 +381,7 @@ def swing_up(
         "observe": observe,
         "kp": kp,
         "kd": kd,
+        "metric": metric,
         "runs": runs,
         "duration": duration,
         "dt": frame_dt,

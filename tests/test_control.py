@@ -115,3 +115,60 @@ def test_energy_shaping_computes_in_the_systems_precision():
     u32 = controller(0.0, x.astype(jnp.float32), xd.astype(jnp.float32))
     assert u32.dtype == jnp.float32
     np.testing.assert_allclose(u32, u64, rtol=1e-5)
+
+
+def _gauge(alpha):
+    """The same cart-pole with its Lagrangian and inputs scaled by `alpha` (`M`, `V`, `g` times
+    `alpha`): the same motion for the same controls, as a model learnt from images may come out."""
+    return cldyn.systems.cartpole(cart_mass=alpha, pole_mass=0.1 * alpha, gears=alpha, actuators="all")
+
+
+def _closed_loop_eigenvalues(system, controller, target):
+    """Eigenvalues of the closed loop linearised at the target, without the zeros of the directions
+    off the constraint manifold."""
+    k = system.size
+
+    def field(z):
+        x, xd = z[:k], z[k:]
+        return jnp.concatenate([xd, system.acceleration(x, xd, controller(0.0, x, xd))])
+
+    eigenvalues = np.linalg.eigvals(np.asarray(jax.jacfwd(field)(jnp.concatenate([target, 0 * target]))))
+    eigenvalues = eigenvalues[np.abs(eigenvalues) > 1e-6]
+    return eigenvalues[np.argsort(eigenvalues.imag, kind="stable")]
+
+
+@pytest.mark.parametrize("alpha", [1.0, 7.0])
+def test_mass_metric_places_every_mode_at_the_roots_of_the_gains(alpha):
+    # with V_d and damping weighed by M, every mode near the target obeys e'' + kd e' + kp e = 0:
+    # kp = 5, kd = 2 give s = -1 +- 2j (twice: two degrees of freedom), at any scale of the Lagrangian
+    system, joints = _gauge(alpha)
+    target = joints.keypoints(jnp.array([0.0, np.pi]))
+    controller = cldyn.EnergyShaping(system, target, 5.0, 2.0, metric="mass")
+    roots = np.array([-1 - 2j, -1 - 2j, -1 + 2j, -1 + 2j])  # s^2 + 2 s + 5 = 0, twice
+    np.testing.assert_allclose(_closed_loop_eigenvalues(system, controller, target), roots, atol=1e-6)
+
+
+def test_mass_metric_controls_do_not_depend_on_the_scale_of_the_lagrangian():
+    (one, joints), (seven, _) = _gauge(1.0), _gauge(7.0)
+    target = joints.keypoints(jnp.array([0.0, np.pi]))
+    x, xd = joints.to_keypoints(jnp.array([0.3, 2.0]), jnp.array([0.5, -1.0]))
+    controls = {
+        metric: [cldyn.EnergyShaping(s, target, 5.0, 2.0, metric=metric)(0.0, x, xd) for s in (one, seven)]
+        for metric in ("euclidean", "mass")
+    }
+    np.testing.assert_allclose(*controls["mass"], rtol=1e-10)
+    # eq. 32 as printed acts differently at each scale: its slowest mode at scale 7 decays at 1/7
+    assert not np.allclose(*controls["euclidean"], rtol=1e-2)
+    euclidean = cldyn.EnergyShaping(seven, target, 5.0, 2.0)
+    assert float(np.max(_closed_loop_eigenvalues(seven, euclidean, target).real)) == pytest.approx(
+        -1 / 7, rel=1e-6
+    )
+
+
+def test_mass_metric_needs_keypoint_damping():
+    system, joints = cldyn.systems.pendulum()
+    target = joints.keypoints(jnp.array([np.pi]))
+    with pytest.raises(ValueError, match="needs damping='keypoint'"):
+        cldyn.EnergyShaping(system, target, metric="mass", damping="output")
+    with pytest.raises(ValueError, match="metric must be 'euclidean' or 'mass'"):
+        cldyn.EnergyShaping(system, target, metric="joint")

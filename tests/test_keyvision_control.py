@@ -40,6 +40,18 @@ def test_the_velocity_estimate_is_the_tangent_velocity_to_second_order(dt):
     assert error < 0.5 * dt**2 * radius * speed**3 and error > 1e-3 * dt**2 * radius * speed**3
 
 
+def test_the_policy_passes_its_metric_to_energy_shaping():
+    model = _tiny_pendulum()
+    target = jnp.array([0.0, 0.4])
+    memory = jnp.asarray([[0.3, 0.2], [0.32, 0.21], [0.33, 0.23]], jnp.float32)
+    policy = keyvision.FramePolicy(model, target, 0.02, metric="mass")
+    x, xd = policy.state(memory)
+    reference = cldyn.EnergyShaping(model.dynamics, target.astype(jnp.float32), 5.0, 2.0, metric="mass")
+    np.testing.assert_allclose(policy.controller(0.0, x, xd), reference(0.0, x, xd), rtol=1e-6)
+    with pytest.raises(ValueError, match="metric must be"):
+        keyvision.FramePolicy(model, target, 0.02, metric="joint")
+
+
 def test_a_policy_needs_learnt_energy():
     keys = jax.random.split(jax.random.key(1), 3)
     node = keyvision.KeyCLD(

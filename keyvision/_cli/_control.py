@@ -48,6 +48,13 @@ def register(subparsers) -> None:
     parser.add_argument("--duration", type=positive(), default=10.0, help="seconds per run")
     parser.add_argument("--kp", type=positive(), default=5.0, help="stiffness of the shaped potential")
     parser.add_argument("--kd", type=positive(allow_zero=True), default=2.0, help="damping injection")
+    parser.add_argument(
+        "--metric",
+        choices=("euclidean", "mass"),
+        default="euclidean",
+        help="the shaped potential's metric: euclidean (eq. 32, the paper) or mass (gains as rates, "
+        "whatever the learnt Lagrangian's scale); see cldyn.EnergyShaping",
+    )
     parser.add_argument("--tolerance", type=positive(), default=0.05, help="success radius in metres")
     parser.add_argument("--seed", type=seed, default=0, help="seed of the initial states")
     add_overwrite(parser, "results")
@@ -97,6 +104,7 @@ def run(args: argparse.Namespace) -> int:
             target=target,
             kp=args.kp,
             kd=args.kd,
+            metric=args.metric,
             runs=args.runs,
             duration=args.duration,
             tolerance=args.tolerance,
@@ -118,6 +126,7 @@ def run(args: argparse.Namespace) -> int:
             "observe",
             "kp",
             "kd",
+            "metric",
             "runs",
             "duration",
             "dt",
