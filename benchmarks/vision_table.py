@@ -18,6 +18,7 @@ bands, the threshold dashed) and vision_table_frames_<scene>.png (Figs. 4, 13-15
 one validation run, true and as each model predicts it); prints the JSON.
 
     python benchmarks/vision_table.py --scenes pendulum --rounds 1   # the CPU budget of the table
+    python benchmarks/vision_table.py --report     # the table of what has finished, training nothing
 """
 
 import argparse
@@ -153,6 +154,11 @@ def main() -> None:
         "--seeds", type=int, default=1, help="KeyCLD's seeds (3 in the issue, where time allows)"
     )
     parser.add_argument("--ablation-seeds", type=int, default=1, help="seeds of each ablation")
+    parser.add_argument(
+        "--report",
+        action="store_true",
+        help="train nothing: the table and figures of the models already finished",
+    )
     add_recipe(parser, rounds=1)
     args = parser.parse_args()
     import jax
@@ -163,42 +169,63 @@ def main() -> None:
         out = pathlib.Path(args.out) / scene
         data = out / "data"
         if not (data / "frames.npz").is_file():
+            if args.report:
+                continue
             _cli("render", "--scene", f"keycld/{scene}", "--out", data, "--runs", args.runs)
         recipe = recipe_options(args)
-        keycld = [
-            _train_and_evaluate(out / f"keycld-{s}", data, [*recipe, "--seed", s]) for s in range(args.seeds)
-        ]
-        rows, models = {"KeyCLD": _summary(keycld)}, {"KeyCLD": out / "keycld-0"}
-        for name, (options, shared) in VARIANTS.items():
-            slug = name.lower().replace(" ", "-")
+        rows, models = {}, {}
+        for name, (options, shared, seeds) in {
+            "KeyCLD": ([], False, args.seeds),
+            **{name: (*variant, args.ablation_seeds) for name, variant in VARIANTS.items()},
+        }.items():
+            slug = "keycld" if name == "KeyCLD" else name.lower().replace(" ", "-")
             share = ["--networks-from", out / "keycld-0"] if shared else []
             runs = [
                 _train_and_evaluate(out / f"{slug}-{s}", data, [*recipe, *options, *share, "--seed", s])
-                for s in range(args.ablation_seeds)
+                for s in range(seeds)
+                if not args.report or _finished(out / f"{slug}-{s}")
             ]
-            rows[name], models[name] = _summary(runs), out / f"{slug}-0"
+            if runs:
+                rows[name], models[name] = _summary(runs), out / f"{slug}-0"
+        if not rows:
+            continue
         _plot_mse(RESULTS / f"vision_table_mse_{scene}.png", scene, rows)
         _plot_frames(RESULTS / f"vision_table_frames_{scene}.png", data, models)
         scenes[scene] = rows
+        # written after every scene: a call cut short leaves the table of the scenes it finished
+        _write(scenes, args, str(jax.devices()[0]), time.perf_counter() - started)
+
+
+def _finished(model: pathlib.Path) -> bool:
+    evaluation = model.parent / f"{model.name}-evaluate" / "vpt.json"
+    return (model / "model.eqx").is_file() and evaluation.is_file()
+
+
+def _write(scenes: dict, args, device: str, seconds: float) -> None:
+    """benchmarks/results/vision_table.{json,md} from the rows of the scenes done."""
     result = {
         "machine": machine(),
-        "device": str(jax.devices()[0]),
-        "recipe": {name: getattr(args, name) for name in vars(args) if name not in ("scenes", "out")},
-        "seconds_this_call": round(time.perf_counter() - started, 1),
+        "device": device,
+        "recipe": {
+            name: getattr(args, name) for name in vars(args) if name not in ("scenes", "out", "report")
+        },
+        "seconds_this_call": round(seconds, 1),
         "scenes": {
             s: {n: {k: v for k, v in r.items() if k != "mse_per_run"} for n, r in rows.items()}
             for s, rows in scenes.items()
         },
     }
-    names = list(scenes[args.scenes[0]])
-    runs = scenes[args.scenes[0]]["KeyCLD"]["runs"]
+    names = ["KeyCLD", *VARIANTS]
+    first = next(iter(scenes.values()))
+    runs = first["KeyCLD"]["runs"] if "KeyCLD" in first else next(iter(first.values()))["runs"]
     lines = [
         "# The paper's ablation study from images (Table 1)",
         "",
-        f"VPT over the {runs} validation runs, mean +- std (median); the paper's value in brackets. KeyCLD: "
-        f"{args.seeds} seed(s), runs pooled; ablations: {args.ablation_seeds} seed(s). Recipe: "
-        f"`{' '.join(str(o) for o in recipe_options(args))}` on {result['device']} "
-        f"({result['machine']['cpus']} CPUs); training time per model in the second table.",
+        f"VPT over the {runs} validation runs, mean +- std (median); the paper's value in brackets; - where "
+        f"not run yet. KeyCLD: {args.seeds} seed(s), runs pooled; ablations: {args.ablation_seeds} seed(s). "
+        f"Recipe: `{' '.join(str(o) for o in recipe_options(args))}` on {device} "
+        f"({result['machine']['cpus']} CPUs); training time per model in the second table (an ablation "
+        "that starts from KeyCLD's autoencoder stage counts that stage's time).",
         "",
         "| model | " + " | ".join(scenes) + " |",
         "| --- |" + " --- |" * len(scenes),
@@ -206,13 +233,17 @@ def main() -> None:
     for name in names:
         cells = []
         for scene, rows in scenes.items():
-            row, paper = rows[name], PAPER.get(name, {}).get(scene)
-            cell = f"{row['mean']:.2f} +- {row['std']:.2f} ({row['median']:.2f})"
+            paper = PAPER.get(name, {}).get(scene)
+            row = rows.get(name)
+            cell = "-" if row is None else f"{row['mean']:.2f} +- {row['std']:.2f} ({row['median']:.2f})"
             cells.append(cell + ("" if paper is None else f" [{paper:.2f}]"))
         lines.append(f"| {name} | " + " | ".join(cells) + " |")
     lines += ["", "| model | " + " | ".join(scenes) + " |", "| --- |" + " --- |" * len(scenes)]
     for name in names:
-        cells = [" / ".join(f"{s / 60:.0f} min" for s in rows[name]["seconds"]) for rows in scenes.values()]
+        cells = [
+            " / ".join(f"{s / 60:.0f} min" for s in rows[name]["seconds"]) if name in rows else "-"
+            for rows in scenes.values()
+        ]
         lines.append(f"| {name} | " + " | ".join(cells) + " |")
     write("vision_table", result, "\n".join(lines) + "\n")
 
