@@ -289,6 +289,34 @@ def test_identify_says_when_the_data_cannot_support_a_conclusion():
     assert result.to_dict()["outcome"] == "nothing could be detected"
 
 
+@pytest.mark.parametrize("name", ["acrobot", "chain3"])
+def test_the_basis_of_the_joint_coordinates_is_the_joint_maps_jacobian(name):
+    # without a JointMap, G solves [dq/dx; DPhi] G = [I; 0]: at any pose it equals dF/dq of the
+    # chain's forward map (a different computation: autodiff of the joint map), and it moves smoothly
+    from cldyn._identify.residual import basis
+
+    system, joints, _ = reference_systems()[name]
+    coordinates = tuple(_hinges(joints.num_joints))
+    for q in np.random.default_rng(0).uniform(-3, 3, size=(5, joints.num_joints)):
+        x = joints.keypoints(jnp.asarray(q))
+        np.testing.assert_allclose(basis(system, coordinates, x), basis(system, joints, x), atol=1e-12)
+        # its derivative along a motion (which the weak form needs) is the joint map's too
+        xd = joints.to_keypoints(jnp.asarray(q), jnp.ones(joints.num_joints))[1]
+        rate = [jax.jvp(lambda y, f=f: basis(system, f, y), (x,), (xd,))[1] for f in (coordinates, joints)]
+        np.testing.assert_allclose(*rate, atol=1e-10)
+
+
+def test_identify_without_a_joint_map_finds_the_damping():
+    b = 0.1
+    system, _, data, coordinates = _reference_data("pendulum", lambda q, qd: -b * qd, runs=12, seed=2)
+    result = cldyn.identify(system, data, joint_coordinates=coordinates, bootstrap=20)
+    assert [(d.name, d.where) for d in result.detected] == [("joint_damping", "hinge")], result.summary()
+    assert abs(result.detected[0].value - b) <= DAMPING_RTOL * b
+    # one coordinate per degree of freedom, or the basis is not determined
+    with pytest.raises(ValueError, match="2 joint coordinates \\+ 1 constraints != 2"):
+        cldyn.identify(system, data, joint_coordinates={**coordinates, "again": coordinates["hinge"]})
+
+
 def test_identify_refuses_data_that_break_the_model_kinematics():
     system, joints, data, coordinates = _effect_free_pendulum()
     # keypoints of a pendulum 1.3 times as long as the model's (0.7 m): the anchor's distance is off by

@@ -46,6 +46,12 @@ def _check(model, data, coordinates, joints, runs_needed: int = 4) -> None:
         raise ValueError(
             f"joints has {joints.num_joints} joint coordinates but joint_coordinates has {len(coordinates)}"
         )
+    if joints is None and len(coordinates) + model.num_constraints != model.size:
+        raise ValueError(
+            f"without joints, the joint coordinates and the constraints must fix the keypoints: "
+            f"{len(coordinates)} joint coordinates + {model.num_constraints} constraints != {model.size} "
+            "keypoint coordinates (name one coordinate per degree of freedom, or pass joints)"
+        )
     if data.size != model.size:
         raise ValueError(f"x must have shape (runs, T, {model.size}), got {tuple(data.x.shape)}")
     if data.num_inputs != model.num_inputs:
@@ -163,8 +169,9 @@ def identify(
     - `joint_coordinates`: name -> joint coordinate `q(x)`, for the joint effects (for a MuJoCo
       model: `dict(zip(bridge.joint_names, bridge.joint_coordinates))`).
     - `joints`: the `JointMap` whose Jacobian is the basis `G` (and whose keypoints give the levels of
-      the constraints the data are checked against); without it, an orthonormal basis of the tangent
-      space, and the constraints need only stay constant.
+      the constraints the data are checked against); without it, `G = dx/dq` as the joint coordinates
+      and the constraints determine it (one joint coordinate per degree of freedom), and the
+      constraints need only stay constant.
     - `joint_limits`: joint name -> `(low, high)` in the joint coordinate's units, for joints with
       limits the model does not express (`from_mjcf` gives them as `bridge.joint_limits`).
     - `actuator_names`, `keypoint_names`: names for reports; by default `data.info`'s, if it has them.
@@ -240,8 +247,9 @@ def identify(
     meter = progress_meter.start(max_rounds + 2, desc="identify", unit="stage")
     try:
         arrays = prepared.arrays()
-        residual = tests.weak(*evaluate(Residual(model, joints), *arrays))
-        noise_response = _noise_response(model, joints, data, choice, coordinates, tests, residual, seed)
+        frame = joints if joints is not None else coordinates  # what `basis` makes G of
+        residual = tests.weak(*evaluate(Residual(model, frame), *arrays))
+        noise_response = _noise_response(model, frame, data, choice, coordinates, tests, residual, seed)
         adequacy, examinable = assess(
             context=context,
             candidates=all_candidates,
@@ -260,7 +268,7 @@ def identify(
         problems += _unconverged("nominal", before)
         meter = progress_meter.update(meter, 1, {"rollout_rmse_1s": before.rollout_rmse_1s})
         # the candidates' features do not change from round to round: evaluate them once, on every run
-        features = tests.weak(*evaluate(Features(context, joints, all_candidates), *arrays))
+        features = tests.weak(*evaluate(Features(context, frame, all_candidates), *arrays))
         current, current_errors, error_after = model, before, error_before
         detected: list[Detection] = []
         rejected: list[Detection] = []
@@ -273,7 +281,7 @@ def identify(
                 break
             columns = [col for j in active for col in range(offsets[j], offsets[j + 1])]
             if round_index > 1:
-                residual = tests.weak(*evaluate(Residual(current, joints), *arrays))
+                residual = tests.weak(*evaluate(Residual(current, frame), *arrays))
             r_fit = residual[fit_runs, ..., 0]
             if weights is None:
                 spread = (
@@ -322,7 +330,7 @@ def identify(
                 """The model with `detections` added and refitted, and its held-out errors."""
                 augmented = augment(current, detections, context)
                 augmented, solved = refit(
-                    augmented, fit_data, joints, weights, tests,
+                    augmented, fit_data, frame, weights, tests,
                     kept=kept[fit_runs], potential=refit_potential,
                 )
                 found, _, curve = errors(augmented, held_data, horizon, tests, kept[held])

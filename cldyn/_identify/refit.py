@@ -72,7 +72,7 @@ _LM_MAX_PARAMETERS = 256
 def refit(
     model: ConstrainedLagrangian,
     data: Prepared,
-    joints: JointMap | None,
+    joints: "JointMap | tuple",
     weights: np.ndarray,
     tests: TestFunctions,
     *,

@@ -18,13 +18,16 @@ from .._system import ConstrainedLagrangian
 from .base import Candidate, Context, Point
 
 
-def basis(model: ConstrainedLagrangian, joints: JointMap | None, x):
-    """`G = dx/dq` (k, m) from the joint map, or an orthonormal basis of the tangent space."""
-    if joints is not None:
+def basis(model: ConstrainedLagrangian, joints, x):
+    """`G = dx/dq` `(k, m)`. From the joint map when `joints` is a `JointMap`; when it is the joint
+    coordinates themselves, the `G` they and the constraints determine: `[dq/dx; DPhi] G = [I; 0]`
+    (the joint velocities `qd = dq/dx xd` and `DPhi xd = 0` fix `xd = G qd`). Smooth in `x`, as the
+    weak form's derivative of `G^T M` along the motion needs."""
+    if isinstance(joints, JointMap):
         return jax.jacfwd(joints.keypoints)(joints.joints(x))
-    jac = model.constraint.jacobian(x)
-    _, _, vt = jnp.linalg.svd(jac, full_matrices=True)
-    return vt[jac.shape[0] :].T
+    rows = jnp.concatenate([jnp.stack([c.gradient(x) for c in joints]), model.constraint.jacobian(x)])
+    m = len(joints)
+    return jnp.linalg.solve(rows, jnp.eye(rows.shape[0], m, dtype=rows.dtype))
 
 
 def weak_pieces(joint_forces: Callable, x, xd, u, q):
@@ -44,7 +47,7 @@ class Residual(eqx.Module):
     """The joint-space residual `G^T (M xdd - f)` and inertial force `G^T M xdd`, shape `(m, 2)`."""
 
     model: ConstrainedLagrangian
-    joints: JointMap | None
+    joints: "JointMap | tuple"  # or the joint coordinates (see `basis`)
 
     def joint_forces(self, x, xd, xdd, u, q):
         g = basis(self.model, self.joints, x)
@@ -59,7 +62,7 @@ class Features(eqx.Module):
     """The joint-space force of every candidate column per unit parameter, shape `(m, C)`."""
 
     context: Context
-    joints: JointMap | None
+    joints: "JointMap | tuple"  # or the joint coordinates (see `basis`)
     candidates: tuple[Candidate, ...] = eqx.field(static=True)
 
     def joint_forces(self, x, xd, xdd, u, q):
