@@ -13,6 +13,7 @@ previous rows); prints the JSON.
     python benchmarks/vision_identify.py                       # every case
     python benchmarks/vision_identify.py --scenes pendulum     # one scene's cases
     python benchmarks/vision_identify.py --scenes pendulum --attributes frictionloss --seeds 0
+    python benchmarks/vision_identify.py --scenes pendulum --attributes damping --seeds 0 --refine-steps 300
 """
 
 import argparse
@@ -51,10 +52,15 @@ def _case(scene: str, joints: dict | None, seed: int, args) -> dict:
     xml = cldyn.mujoco.modify_scene(f"keycld/{scene}", joints=joints) if joints else f"keycld/{scene}"
     protocol = keyvision.RenderProtocol(runs=args.runs, validation_runs=args.validation_runs)
     frames = keyvision.render(xml, protocol=protocol, seed=seed, workers=1)
-    model, _ = keyvision.load_model(MODELS[scene])
+    model, spec = keyvision.load_model(MODELS[scene])
+    refine = None
+    if args.refine_steps and joints:
+        from keyvision._train import joint_stage
+
+        refine = joint_stage(spec.get("schedule") or {}, args.refine_steps)
     started = time.perf_counter()
     try:
-        result = keyvision.identify(model, frames, seed=seed)
+        result = keyvision.identify(model, frames, refine=refine, seed=seed)
     except ValueError as error:  # e.g. keypoints that break the constraints: reported, not fatal
         return {"outcome": f"refused: {error}", "effects": [], "seconds": time.perf_counter() - started}
     finally:
@@ -66,6 +72,7 @@ def _case(scene: str, joints: dict | None, seed: int, args) -> dict:
         "adequacy": list(report.adequacy.problems) if report.adequacy is not None else [],
         "rollout_1s": [report.before.rollout_rmse_1s, report.after.rollout_rmse_1s],
         "images": result.images,
+        "refine_steps": refine.joint_steps if refine is not None else 0,
         "joules_per_unit": result.joules_per_unit,
         "energy_spread": result.energy_spread,
         "seconds": round(time.perf_counter() - started, 1),
@@ -78,6 +85,13 @@ def main() -> None:
     parser.add_argument("--runs", type=int, default=60)
     parser.add_argument("--validation-runs", type=int, default=10)
     parser.add_argument("--seeds", type=int, default=5, help="seeds of the effect-free data per scene")
+    parser.add_argument(
+        "--refine-steps",
+        type=int,
+        default=0,
+        help="then train each case's model jointly with the image losses (keyvision.identify(refine=)) "
+        "this many steps of its joint stage, and score it beside",
+    )
     parser.add_argument(
         "--attributes", nargs="+", help="only the cases that inject these MJCF attributes (all by default)"
     )
@@ -148,6 +162,9 @@ def main() -> None:
         if images:
             vpt = f"{images['before']['vpt']['mean']:.3f} -> {images['after']['vpt']['mean']:.3f}"
             mse = f"{images['before']['mse']:.2e} -> {images['after']['mse']:.2e}"
+            if "refined" in images:  # then jointly with the image losses
+                vpt += f" -> {images['refined']['vpt']['mean']:.3f} (image refit)"
+                mse += f" -> {images['refined']['mse']:.2e} (image refit)"
         outcome = row["outcome"] + (f" ({'; '.join(row['adequacy'])})" if row.get("adequacy") else "")
         lines.append(
             f"| {row['scene']} | {row['attribute']} {row['truth']} at {row['joint']} | {outcome} | {found} "

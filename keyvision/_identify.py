@@ -318,8 +318,10 @@ class ImageIdentification:
       `spread`, 1 for one actuated joint): far from 1, the values in MuJoCo's units are unreliable.
     - `model`: the KeyCLD model with the effects added and the dynamics refitted (float64 dynamics).
     - `images`: on the frames' validation runs (left out of the identification), the VPT (mean and
-      median) and the image MSE over all their frames of the model `before` and `after`; `None`
-      without validation runs.
+      median) and the image MSE over all their frames of the model `before` and `after` (and
+      `refined`, with `refine`); `None` without validation runs.
+    - `refined`: with `refine`, the model after the joint stage with the image losses (float32);
+      `None` otherwise.
     """
 
     identification: object
@@ -330,6 +332,7 @@ class ImageIdentification:
     model: object
     images: dict | None = None
     energy_spread: float = 1.0
+    refined: object = None
 
 
 def _joules_at(where: str, scale: dict) -> float:
@@ -349,7 +352,7 @@ def _convert(name: str, kind: str, value: float, joules: float, metres: float) -
     return value * joules * (metres ** _POWERS[name] if kind == "slide" else 1.0)
 
 
-def identify(model, frames, *, progress_meter=None, **options) -> ImageIdentification:
+def identify(model, frames, *, refine=None, progress_meter=None, **options) -> ImageIdentification:
     """Find the effects that a KeyCLD model learnt from images is missing, from frames of the system.
 
     The frames are encoded by the model's estimator; the keypoints' constraints give the joints
@@ -368,6 +371,10 @@ def identify(model, frames, *, progress_meter=None, **options) -> ImageIdentific
     - `frames`: `keyvision.Frames` of the real system, rendered from a MuJoCo scene
       (`frames.info["mjcf_xml"]` names the joints and gives the gears): the training runs are
       identified, the validation runs score the model before and after in images (VPT, MSE).
+    - `refine`: a `keyvision.Schedule` for a last step: the model with the effects added trained
+      jointly with the image losses (stage (c) of `keyvision.train`: its `joint_*`, `window` and weight
+      fields) on the identified runs' frames; its other stages are not run. `None` (default): the
+      dynamics refit of `cldyn.identify` only.
     - `progress_meter`: a `cldyn.AbstractProgressMeter`.
     - `options`: passed on to `cldyn.identify` (`effects`, `criteria`, `seed`, ...). The learnt
       potential is held fixed in the refit (`refit_potential=False`) unless given otherwise.
@@ -432,22 +439,43 @@ def identify(model, frames, *, progress_meter=None, **options) -> ImageIdentific
             }
         )
     augmented = KeyCLD(model.estimator, result.model, model.renderer)
-    images = _image_errors(model, augmented, held_out) if held_out.num_runs else None
+    refined = None
+    if refine is not None:
+        refined = _refine(augmented, ImageSequences.from_frames(measured), refine, options.get("seed", 0))
+    images = _image_errors(model, augmented, held_out, refined) if held_out.num_runs else None
     return ImageIdentification(
-        result, tuple(effects), structure, joules, metres, augmented, images, scale["spread"]
+        result, tuple(effects), structure, joules, metres, augmented, images, scale["spread"], refined
     )
 
 
-def _image_errors(before, after, validation) -> dict:
-    """VPT and image MSE of the model before and after, predicting the validation runs (float32)."""
+def _single(model):
+    return jax.tree.map(lambda a: a.astype(jnp.float32) if eqx.is_inexact_array(a) else a, model)
+
+
+def _refine(model, data, schedule, seed: int):
+    """The joint stage of `keyvision.train` alone, on `data`, from `model` (float32)."""
+    from ._train import Schedule, train
+
+    if not isinstance(schedule, Schedule):
+        raise TypeError(f"identify: refine must be a keyvision.Schedule, got {type(schedule).__name__}")
+    if not schedule.joint_steps:
+        raise ValueError("identify: refine's schedule has joint_steps=0: nothing to refine")
+    stage = dataclasses.replace(schedule, autoencoder_steps=0, dynamics_steps=0, refit_steps=0, rounds=1)
+    return train(_single(model), data, key=jax.random.key(seed), schedule=stage).model
+
+
+def _image_errors(before, after, validation, refined=None) -> dict:
+    """VPT and image MSE of the model before and after (and refined), predicting the validation runs
+    (float32)."""
     from ._evaluate import predict_runs, prediction_threshold, valid_prediction_time
 
     images = validation.images(np.float32)
     controls = validation.u.astype(np.float32)
     threshold = prediction_threshold(images)
     record = {"runs": validation.num_runs, "threshold": threshold}
-    for name, model in (("before", before), ("after", after)):
-        model = jax.tree.map(lambda a: a.astype(jnp.float32) if eqx.is_inexact_array(a) else a, model)
+    models = {"before": before, "after": after, **({} if refined is None else {"refined": refined})}
+    for name, model in models.items():
+        model = _single(model)
         predicted = predict_runs(model, images, controls, validation.dt)[1]
         vpt = np.asarray(valid_prediction_time(predicted, images, threshold=threshold))
         record[name] = {

@@ -161,6 +161,15 @@ class Schedule:
         return described
 
 
+def joint_stage(recipe: dict, steps: int) -> Schedule:
+    """The joint stage (c) of a training recipe (`keyvision.json`'s `schedule`), for `steps` steps and
+    nothing else: what `keyvision.identify(refine=)` runs after adding effects to a model."""
+    fields = ("joint_batch", "window", "joint_learning_rate", "dynamics_weight", "heatmap_weight")
+    fields += ("constraint_weight", "augment", "warmup_steps", "final_learning_rate")
+    chosen = {name: recipe[name] for name in fields if recipe.get(name) is not None}
+    return Schedule(autoencoder_steps=0, dynamics_steps=0, joint_steps=steps, refit_steps=0, **chosen)
+
+
 @dataclasses.dataclass(frozen=True)
 class TrainResult:
     """What `keyvision.train` returns.

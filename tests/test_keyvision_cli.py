@@ -241,6 +241,13 @@ def test_render_train_evaluate(tmp_path, capsys):
     assert found["joints"] == {"hinge": "hinge"} and found["outcome"] in out
     assert (tmp_path / "id" / "report.md").is_file()
     assert found["images"]["runs"] == 1 and 0 <= found["images"]["before"]["vpt"]["mean"] <= 1
+    assert "refined" not in found["images"]
+    # then jointly with the image losses: a few steps of the model's joint stage, scored beside
+    status, out, err = _run(capsys, identify[:-2] + [tmp_path / "id2", "--no-progress", "--refine-steps", 2])
+    assert status == 0, err
+    refined = json.loads((tmp_path / "id2" / "effects.json").read_text())["images"]["refined"]
+    assert 0 <= refined["vpt"]["mean"] <= 1 and np.isfinite(refined["mse"])
+    assert "refined with the image losses" in out
     # the camera's scale: the width of the image frame (2 units) seen at the pendulum's plane
     edges = frames.camera.to_plane(np.array([[-1.0, 0.0], [1.0, 0.0]]))
     assert found["metres_per_unit"] == pytest.approx(np.linalg.norm(edges[1] - edges[0]) / 2, rel=1e-3)

@@ -9,6 +9,7 @@ from cldyn._cli._common import (
     add_overwrite,
     enable_float64,
     output_directory,
+    positive,
     seed,
 )
 from cldyn._cli._identify import REPORT_FILES, add_effects_option
@@ -37,6 +38,13 @@ def register(subparsers) -> None:
     parser.add_argument("--out", required=True, help="output directory")
     add_effects_option(parser)
     parser.add_argument("--seed", type=seed, default=0, help="seed of the hold-out split and the bootstrap")
+    parser.add_argument(
+        "--refine-steps",
+        type=positive(integer=True, allow_zero=True),
+        default=0,
+        help="after the effects are added, train the model this many steps jointly with the image losses "
+        "on the identified runs (the joint stage of the model's own training recipe); 0: no such stage",
+    )
     parser.add_argument("--no-progress", dest="progress", action="store_false", help="no progress lines")
     add_overwrite(parser, "results")
     parser.set_defaults(run=run)
@@ -65,8 +73,15 @@ def run(args: argparse.Namespace) -> int:
             f"--data: {frames.u.shape[-1]} controls; the model takes {spec['dynamics']['num_inputs']}"
         )
     meter = cldyn.TextProgressMeter() if args.progress else None
+    refine = None
+    if args.refine_steps:  # the joint stage of the model's own recipe (keyvision.json)
+        from keyvision._train import joint_stage
+
+        refine = joint_stage(spec.get("schedule") or {}, args.refine_steps)
     try:
-        result = keyvision.identify(model, frames, progress_meter=meter, effects=args.effects, seed=args.seed)
+        result = keyvision.identify(
+            model, frames, refine=refine, progress_meter=meter, effects=args.effects, seed=args.seed
+        )
     except (ValueError, TypeError, cldyn.ConstraintViolation) as error:
         raise CommandError(str(error)) from None
     result.identification.save(out)
@@ -96,6 +111,12 @@ def run(args: argparse.Namespace) -> int:
             f"; on {result.images['runs']} validation runs VPT {was['vpt']['mean']:.3f} -> "
             f"{now['vpt']['mean']:.3f}, image MSE {was['mse']:.3g} -> {now['mse']:.3g}"
         )
+        if "refined" in result.images:
+            refined = result.images["refined"]
+            images += (
+                f" (refined with the image losses: VPT {refined['vpt']['mean']:.3f}, "
+                f"MSE {refined['mse']:.3g})"
+            )
     print(
         f"{result.identification.outcome}{': ' + found if found else ''} (MuJoCo's units); held-out rollout "
         f"error over 1 s {before.rollout_rmse_1s:.4g} -> {after.rollout_rmse_1s:.4g} (image units){images}; "
