@@ -46,10 +46,10 @@ PAPER = {
 }
 # row -> the `keyvision train` options that make it, and whether it shares KeyCLD's autoencoder
 VARIANTS = {
+    "KeyCLD coupled mass": (["--model", "keycld-coupled"], True),
     "KeyCLD-NC": (["--model", "nc"], True),
     "NODE2": (["--model", "node2"], True),
     "FC": (["--networks", "fc"], False),
-    "KeyCLD coupled mass": (["--model", "keycld-coupled"], True),
 }
 FRAME_EVERY = 4  # frames between those of Figs. 4 and 13-15
 
