@@ -42,6 +42,7 @@ from ._identify import (
     JointStructure as JointStructure,
     identify as identify,
     joint_structure as joint_structure,
+    scene_actuators as scene_actuators,
 )
 from ._keypoints import (
     frame_to_pixel as frame_to_pixel,

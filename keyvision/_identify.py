@@ -352,7 +352,9 @@ def _convert(name: str, kind: str, value: float, joules: float, metres: float) -
     return value * joules * (metres ** _POWERS[name] if kind == "slide" else 1.0)
 
 
-def identify(model, frames, *, refine=None, progress_meter=None, **options) -> ImageIdentification:
+def identify(
+    model, frames, *, inputs=None, refine=None, progress_meter=None, **options
+) -> ImageIdentification:
     """Find the effects that a KeyCLD model learnt from images is missing, from frames of the system.
 
     The frames are encoded by the model's estimator; the keypoints' constraints give the joints
@@ -371,6 +373,11 @@ def identify(model, frames, *, refine=None, progress_meter=None, **options) -> I
     - `frames`: `keyvision.Frames` of the real system, rendered from a MuJoCo scene
       (`frames.info["mjcf_xml"]` names the joints and gives the gears): the training runs are
       identified, the validation runs score the model before and after in images (VPT, MSE).
+    - `inputs`: the name of the actuator behind each of the model's inputs, in order (those of the
+      scene it was trained on, e.g. `("shoulder", "elbow")`; `scene_actuators` reads them). The
+      frames' controls are then placed by actuator name, and an input whose actuator the frames'
+      scene lacks is held at zero: dm_control's stock acrobot drives the elbow only. `None`
+      (default): the frames have one control per input, in the model's order.
     - `refine`: a `keyvision.Schedule` for a last step: the model with the effects added trained
       jointly with the image losses (stage (c) of `keyvision.train`: its `joint_*`, `window` and weight
       fields) on the identified runs' frames; its other stages are not run. `None` (default): the
@@ -395,6 +402,7 @@ def identify(model, frames, *, refine=None, progress_meter=None, **options) -> I
     from ._data import ImageSequences
     from ._train import encode_sequences
 
+    frames = _place_controls(frames, inputs, model.dynamics.num_inputs)
     measured, held_out = frames.split()
     if measured.num_runs == 0:
         raise ValueError(f"identify: all {frames.num_runs} runs of the frames are validation runs")
@@ -414,7 +422,8 @@ def identify(model, frames, *, refine=None, progress_meter=None, **options) -> I
     # the learnt potential was learnt from every frame of the training data; refitted on these runs it
     # fits them at the expense of other motions (measured: the held-out frames predicted worse)
     options.setdefault("refit_potential", False)
-    options.setdefault("actuator_names", list(frames.info.get("actuator_names", [])) or None)
+    actuators = inputs if inputs is not None else frames.info.get("actuator_names", [])
+    options.setdefault("actuator_names", [str(name) for name in actuators] or None)
     result = cldyn.identify(
         dynamics, data, joint_coordinates=structure.coordinates, joints=structure.joint_map, **options
     )
@@ -446,6 +455,48 @@ def identify(model, frames, *, refine=None, progress_meter=None, **options) -> I
     return ImageIdentification(
         result, tuple(effects), structure, joules, metres, augmented, images, scale["spread"], refined
     )
+
+
+def scene_actuators(scene: str) -> tuple[str, ...]:
+    """The names of a scene's actuators, in MuJoCo's order: the `inputs` of `identify` for a model
+    trained on frames of `scene` (what `keyvision.render` accepts: `"keycld/acrobot"`, an MJCF)."""
+    from ._render import _scene_xml
+    from ._scene import _mujoco
+
+    mujoco = _mujoco()
+    model = mujoco.MjModel.from_xml_string(_scene_xml(scene))
+    return tuple(
+        mujoco.mj_id2name(model, mujoco.mjtObj.mjOBJ_ACTUATOR, a) or f"actuator{a}" for a in range(model.nu)
+    )
+
+
+def _place_controls(frames, inputs, num_inputs: int):
+    """The frames with their controls laid out as the model's inputs (see `identify`'s `inputs`)."""
+    count = frames.u.shape[-1]
+    if inputs is None:
+        if count != num_inputs:
+            raise ValueError(
+                f"identify: the frames have {count} controls and the model {num_inputs} inputs; name the "
+                "actuator of each input with inputs= to place the frames' controls by name"
+            )
+        return frames
+    inputs = tuple(str(name) for name in inputs)
+    if len(inputs) != num_inputs:
+        raise ValueError(f"identify: inputs names {len(inputs)} actuators; the model has {num_inputs} inputs")
+    names = [str(name) for name in frames.info.get("actuator_names", [])]
+    if len(names) != count:
+        raise ValueError(
+            f"identify: the frames name {len(names)} actuators for their {count} controls "
+            "(frames.info['actuator_names']): cannot place them by name"
+        )
+    u = np.zeros((*frames.u.shape[:-1], num_inputs), dtype=frames.u.dtype)
+    for column, name in enumerate(names):
+        if name not in inputs:
+            raise ValueError(
+                f"identify: the frames' actuator {name!r} drives none of the model's inputs {inputs}"
+            )
+        u[..., inputs.index(name)] = frames.u[..., column]
+    return dataclasses.replace(frames, u=u)
 
 
 def _single(model):

@@ -116,3 +116,29 @@ def test_metres_per_unit_of_a_square_camera():
     """A camera that maps the image frame to the plane by a scale of 1.7 metres per unit."""
     camera = keyvision.PlanarCamera(np.diag([1.7, 1.7, 1.0]), np.array([[1.0, 0, 0], [0, 0, 1.0]]))
     assert metres_per_unit(camera) == pytest.approx(1.7, rel=1e-9)
+
+
+def test_controls_are_placed_on_the_model_inputs_by_actuator_name():
+    """dm_control's stock acrobot drives the elbow only: its control goes to the input the model
+    learnt for the elbow, the shoulder's input stays at zero; names that do not match are refused."""
+    pytest.importorskip("mujoco")
+    from keyvision._identify import _place_controls
+
+    assert keyvision.scene_actuators("keycld/acrobot") == ("shoulder", "elbow")
+    assert keyvision.scene_actuators("keycld/acrobot:stock") == ("elbow",)
+    rng = np.random.default_rng(0)
+    camera = keyvision.PlanarCamera(np.eye(3), np.array([[1.0, 0, 0], [0, 0, 1.0]]))
+    frames = keyvision.Frames(
+        np.zeros((3, 4, 8, 8, 3), np.uint8), rng.uniform(-1, 1, (3, 4, 1)), 0.01, {}, camera,
+        {"actuator_names": ["elbow"]},
+    )
+    placed = _place_controls(frames, ("shoulder", "elbow"), 2)
+    np.testing.assert_array_equal(placed.u[..., 1], frames.u[..., 0])
+    np.testing.assert_array_equal(placed.u[..., 0], 0.0)
+    assert _place_controls(frames, ("elbow",), 1).u.shape == (3, 4, 1)
+    with pytest.raises(ValueError, match="the frames have 1 controls and the model 2 inputs"):
+        _place_controls(frames, None, 2)
+    with pytest.raises(ValueError, match="actuator 'elbow' drives none of the model's inputs"):
+        _place_controls(frames, ("shoulder", "wrist"), 2)
+    with pytest.raises(ValueError, match="inputs names 1 actuators; the model has 2 inputs"):
+        _place_controls(frames, ("elbow",), 2)

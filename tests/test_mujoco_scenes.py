@@ -175,6 +175,46 @@ def test_stock_scenes_stay_available(name):
         np.testing.assert_array_equal(getattr(ours, field), getattr(stock, field), err_msg=field)
 
 
+@pytest.mark.parametrize("name", KEYCLD_SCENES)
+def test_stock_physics_under_the_keycld_look(name):
+    """`physics="stock"`: dm_control's dynamics, field by field, and the KeyCLD scene's look: the same
+    pixels from the same camera in the same poses (so a model trained on KeyCLD's frames can see it)."""
+    ours = mujoco.MjModel.from_xml_string(keycld_scene(name, physics="stock"))
+    stock = _stock(name)
+    for field in (
+        "body_mass",
+        "body_inertia",
+        "body_ipos",
+        "dof_damping",
+        "dof_armature",
+        "dof_frictionloss",
+        "actuator_gear",
+        "actuator_ctrlrange",
+        "actuator_ctrllimited",
+        "jnt_limited",
+        "jnt_range",
+    ):
+        np.testing.assert_array_equal(getattr(ours, field), getattr(stock, field), err_msg=field)
+    assert keycld_scene(f"keycld/{name}:stock") == keycld_scene(name, physics="stock")
+    keycld = _compiled(name)
+    cameras = [mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_CAMERA, "fixed") for m in (ours, keycld)]
+    np.testing.assert_array_equal(ours.cam_pos[cameras[0]], keycld.cam_pos[cameras[1]])
+    poses = np.random.default_rng(0).uniform(-np.pi, np.pi, size=(3, ours.nq))
+    images = []
+    for model in (ours, keycld):
+        data = mujoco.MjData(model)
+        with mujoco.Renderer(model, 64, 64) as renderer:
+            for q in poses:
+                data.qpos[:] = q
+                mujoco.mj_forward(model, data)
+                renderer.update_scene(data, camera="fixed")
+                images.append(renderer.render().copy())
+    np.testing.assert_array_equal(np.stack(images[:3]), np.stack(images[3:]))
+    assert np.stack(images).std() > 1.0
+    with pytest.raises(ValueError, match="physics must be one of keycld, stock, got 'real'"):
+        keycld_scene(name, physics="real")
+
+
 @pytest.mark.parametrize("poles", [2, 3])
 def test_the_suite_tasks_with_more_poles_are_scenes(poles):
     """`cartpole/two_poles` is the scene of dm_control's `two_poles` task: the stock cart-pole with a

@@ -103,22 +103,39 @@ def _unlimit(actuator: ET.Element) -> None:
     actuator.set("ctrllimited", "false")
 
 
-def _keycld_pendulum(root: ET.Element) -> None:
-    _find(root, ".//joint[@name='hinge']").set("damping", "0")
+def _restyle(root: ET.Element, name: str, physics: bool, **look: str) -> None:
+    """Give the geom `name` KeyCLD's `look` (size, material). With `physics`, the geom itself changes
+    (its inertia with its size); without, the geom keeps its physics out of sight (geom group 3, which
+    MuJoCo's renderers hide by default) and a massless twin with the look is what the camera sees."""
+    geom = _find(root, f".//geom[@name='{name}']")
+    if physics:
+        for attribute, value in look.items():
+            geom.set(attribute, value)
+        return
+    twin = copy.deepcopy(geom)
+    twin.attrib.update(name=f"{name}_look", mass="0", contype="0", conaffinity="0", group="0", **look)
+    twin.attrib.pop("density", None)
+    geom.set("group", "3")
+    parent = next(e for e in root.iter() if geom in list(e))
+    parent.insert(list(parent).index(geom) + 1, twin)
+
+
+def _keycld_pendulum(root: ET.Element, physics: bool) -> None:
     camera = _find(root, ".//camera[@name='fixed']")
     camera.set("pos", "0 -2.5 .6")
     camera.set("xyaxes", "1 0 0 0 0 1")
-    motor = _find(root, "./actuator/motor[@name='torque']")
-    motor.set("gear", "2")
-    _unlimit(motor)
+    if physics:
+        _find(root, ".//joint[@name='hinge']").set("damping", "0")
+        motor = _find(root, "./actuator/motor[@name='torque']")
+        motor.set("gear", "2")
+        _unlimit(motor)
 
 
-def _keycld_cartpole(root: ET.Element) -> None:
-    _find(root, "./default/default[@class='pole']/joint").set("damping", "0")
-    _find(root, "./default/default[@class='pole']/geom").set("size", "0.09")
-    slider = _find(root, ".//joint[@name='slider']")
-    slider.set("damping", "0")
-    slider.set("limited", "false")
+def _keycld_cartpole(root: ET.Element, physics: bool) -> None:
+    if physics:  # the pole's class sets its size
+        _find(root, "./default/default[@class='pole']/geom").set("size", "0.09")
+    else:
+        _restyle(root, "pole_1", physics, size="0.09")
     _find(root, ".//camera[@name='fixed']").set("pos", "0 -6 1")
     for rail in ("rail1", "rail2"):
         _find(root, f".//geom[@name='{rail}']").set("size", "0.02 4")
@@ -126,32 +143,38 @@ def _keycld_cartpole(root: ET.Element) -> None:
     floor.set("pos", "0 0 -.2")
     floor.set("size", "8 8 .2")
     _find(root, ".//geom[@name='cart']").set("material", "decoration")
-    actuators = _find(root, "./actuator")
-    slide = _find(actuators, "./motor[@name='slide']")
-    slide.set("gear", "4")
-    _unlimit(slide)
-    ET.SubElement(actuators, "motor", name="hinge_1", joint="hinge_1", gear="1", ctrllimited="false")
+    if physics:
+        _find(root, "./default/default[@class='pole']/joint").set("damping", "0")
+        slider = _find(root, ".//joint[@name='slider']")
+        slider.set("damping", "0")
+        slider.set("limited", "false")
+        actuators = _find(root, "./actuator")
+        slide = _find(actuators, "./motor[@name='slide']")
+        slide.set("gear", "4")
+        _unlimit(slide)
+        ET.SubElement(actuators, "motor", name="hinge_1", joint="hinge_1", gear="1", ctrllimited="false")
 
 
-def _keycld_acrobot(root: ET.Element) -> None:
-    _find(root, "./default/joint").set("damping", "0")
+def _keycld_acrobot(root: ET.Element, physics: bool) -> None:
+    # the shoulder moves with the camera: a translation, which changes nothing in the dynamics
     _find(root, ".//camera[@name='fixed']").set("pos", "0 -6 2.1")
     _find(root, ".//body[@name='upper_arm']").set("pos", "0 0 2.1")
-    upper = _find(root, ".//geom[@name='upper_arm']")
-    upper.set("size", "0.1")
-    upper.set("material", "decoration")
-    _find(root, ".//geom[@name='lower_arm']").set("size", "0.098")
-    actuators = _find(root, "./actuator")
-    elbow = _find(actuators, "./motor[@name='elbow']")
-    _unlimit(elbow)
-    shoulder = ET.Element("motor", name="shoulder", joint="shoulder", gear="2", ctrllimited="false")
-    actuators.insert(list(actuators).index(elbow), shoulder)
+    _restyle(root, "upper_arm", physics, size="0.1", material="decoration")
+    _restyle(root, "lower_arm", physics, size="0.098")
+    if physics:
+        _find(root, "./default/joint").set("damping", "0")
+        actuators = _find(root, "./actuator")
+        elbow = _find(actuators, "./motor[@name='elbow']")
+        _unlimit(elbow)
+        shoulder = ET.Element("motor", name="shoulder", joint="shoulder", gear="2", ctrllimited="false")
+        actuators.insert(list(actuators).index(elbow), shoulder)
 
 
 _EDITS = {"pendulum": _keycld_pendulum, "cartpole": _keycld_cartpole, "acrobot": _keycld_acrobot}
+_PHYSICS = ("keycld", "stock")
 
 
-def keycld_scene(name: str) -> str:
+def keycld_scene(name: str, *, physics: str = "keycld") -> str:
     """The MJCF of one of KeyCLD's scenes, made by editing dm_control's suite XML.
 
     The changes follow the KeyCLD paper (appendix A.6) and its authors' fork of dm_control: no joint
@@ -162,12 +185,22 @@ def keycld_scene(name: str) -> str:
     0.09, cart coloured `decoration`; acrobot camera at `(0, -6, 2.1)`, shoulder at `z = 2.1`, both arm
     radii doubled, upper arm coloured `decoration`).
 
+    With `physics="stock"` the scene keeps dm_control's own physics (its joint damping, rail limit,
+    actuators, gears, control limits, and the masses and inertias of its geoms) and takes only
+    KeyCLD's camera and look: a system a model trained on KeyCLD's frames can see, with effects
+    nobody declared to it. A geom whose look changes its size stays as dm_control has it, hidden
+    from the camera (geom group 3), beside a massless twin that shows KeyCLD's size and colour; the
+    acrobot's shoulder moves up with the camera, which leaves its dynamics unchanged.
+
     The stock scenes stay available by their suite name (`"cartpole"`); the variants are also
-    reachable as `"keycld/cartpole"` wherever an MJCF is accepted.
+    reachable as `"keycld/cartpole"` and `"keycld/cartpole:stock"` wherever an MJCF is accepted.
 
     **Arguments:**
 
-    - `name`: `"pendulum"`, `"cartpole"` or `"acrobot"` (a `"keycld/"` prefix is accepted).
+    - `name`: `"pendulum"`, `"cartpole"` or `"acrobot"` (a `"keycld/"` prefix and a `":stock"` or
+      `":keycld"` suffix are accepted).
+    - `physics`: `"keycld"` (the paper's scenes) or `"stock"` (dm_control's physics, KeyCLD's camera
+      and look).
 
     **Returns:** the self-contained XML text (includes inlined), loadable with
     `mujoco.MjModel.from_xml_string` or `dm_control.mujoco.Physics.from_xml_string`.
@@ -177,14 +210,20 @@ def keycld_scene(name: str) -> str:
         ```python
         xml = cldyn.mujoco.keycld_scene("acrobot")
         physics = dm_control.mujoco.Physics.from_xml_string(xml)
+        stock = cldyn.mujoco.keycld_scene("acrobot", physics="stock")  # damping 0.05, elbow motor
         ```
     """
     key = name.removeprefix(_KEYCLD_PREFIX)
+    if ":" in key:
+        key, physics = key.split(":", 1)
     if key not in _EDITS:
         raise ValueError(f"unknown KeyCLD scene {name!r}; choose one of {', '.join(KEYCLD_SCENES)}")
+    if physics not in _PHYSICS:
+        raise ValueError(f"physics must be one of {', '.join(_PHYSICS)}, got {physics!r}")
     root = copy.deepcopy(_suite_root(key))
-    root.set("model", f"keycld-{root.get('model', key)}")
-    _EDITS[key](root)
+    stock = physics == "stock"
+    root.set("model", f"keycld-{'stock-' if stock else ''}{root.get('model', key)}")
+    _EDITS[key](root, not stock)
     return _to_text(root)
 
 

@@ -68,7 +68,18 @@ def run(args: argparse.Namespace) -> int:
             f"--data: frames of {frames.image_size} pixels; the model takes {model.image_size} x "
             f"{model.image_size}"
         )
-    if frames.u.shape[-1] != spec["dynamics"]["num_inputs"]:
+    # the model's inputs are the actuators of the scene it was trained on: the frames' controls are
+    # placed by name (a scene may drive fewer joints, as dm_control's stock acrobot does)
+    inputs = None
+    trained_on = (spec.get("data") or {}).get("scene")
+    if trained_on and frames.info.get("actuator_names"):
+        try:
+            inputs = keyvision.scene_actuators(trained_on)
+        except (ValueError, FileNotFoundError):
+            inputs = None  # a scene no longer at hand: the controls must then match in number
+        if inputs is not None and len(inputs) != spec["dynamics"]["num_inputs"]:
+            inputs = None
+    if inputs is None and frames.u.shape[-1] != spec["dynamics"]["num_inputs"]:
         raise CommandError(
             f"--data: {frames.u.shape[-1]} controls; the model takes {spec['dynamics']['num_inputs']}"
         )
@@ -80,7 +91,13 @@ def run(args: argparse.Namespace) -> int:
         refine = joint_stage(spec.get("schedule") or {}, args.refine_steps)
     try:
         result = keyvision.identify(
-            model, frames, refine=refine, progress_meter=meter, effects=args.effects, seed=args.seed
+            model,
+            frames,
+            inputs=inputs,
+            refine=refine,
+            progress_meter=meter,
+            effects=args.effects,
+            seed=args.seed,
         )
     except (ValueError, TypeError, cldyn.ConstraintViolation) as error:
         raise CommandError(str(error)) from None
