@@ -318,8 +318,9 @@ class ImageIdentification:
       `spread`, 1 for one actuated joint): far from 1, the values in MuJoCo's units are unreliable.
     - `model`: the KeyCLD model with the effects added and the dynamics refitted (float64 dynamics).
     - `images`: on the frames' validation runs (left out of the identification), the VPT (mean and
-      median) and the image MSE over all their frames of the model `before` and `after` (and
-      `refined`, with `refine`); `None` without validation runs.
+      median), the image MSE over all their frames and its mean over the runs frame by frame
+      (`mse_over_time`) of the model `before` and `after` (and `refined`, with `refine`), with the
+      VPT `threshold` and `dt`; `None` without validation runs.
     - `refined`: with `refine`, the model after the joint stage with the image losses (float32);
       `None` otherwise.
     """
@@ -523,14 +524,16 @@ def _image_errors(before, after, validation, refined=None) -> dict:
     images = validation.images(np.float32)
     controls = validation.u.astype(np.float32)
     threshold = prediction_threshold(images)
-    record = {"runs": validation.num_runs, "threshold": threshold}
+    record = {"runs": validation.num_runs, "threshold": threshold, "dt": validation.dt}
     models = {"before": before, "after": after, **({} if refined is None else {"refined": refined})}
     for name, model in models.items():
         model = _single(model)
         predicted = predict_runs(model, images, controls, validation.dt)[1]
         vpt = np.asarray(valid_prediction_time(predicted, images, threshold=threshold))
+        per_frame = np.mean((predicted - images) ** 2, axis=(0, 2, 3, 4))
         record[name] = {
             "vpt": {"mean": float(vpt.mean()), "median": float(np.median(vpt))},
-            "mse": float(np.mean((predicted - images) ** 2)),
+            "mse": float(per_frame.mean()),
+            "mse_over_time": per_frame.tolist(),
         }
     return record

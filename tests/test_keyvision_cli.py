@@ -242,6 +242,11 @@ def test_render_train_evaluate(tmp_path, capsys):
     assert (tmp_path / "id" / "report.md").is_file()
     assert found["images"]["runs"] == 1 and 0 <= found["images"]["before"]["vpt"]["mean"] <= 1
     assert "refined" not in found["images"]
+    # the image error frame by frame: its mean is the MSE over all frames; plotted in image_error.png
+    for name in ("before", "after"):
+        per_frame = found["images"][name]["mse_over_time"]
+        assert len(per_frame) == 20 and np.mean(per_frame) == pytest.approx(found["images"][name]["mse"])
+    assert (tmp_path / "id" / "image_error.png").stat().st_size > 0
     # then jointly with the image losses: a few steps of the model's joint stage, scored beside
     status, out, err = _run(capsys, identify[:-2] + [tmp_path / "id2", "--no-progress", "--refine-steps", 2])
     assert status == 0, err

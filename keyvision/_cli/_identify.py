@@ -17,7 +17,7 @@ from cldyn._cli._identify import REPORT_FILES, add_effects_option
 from ._common import frames_file
 
 # what cldyn's Identification.save writes, and the effects in MuJoCo's units
-_RESULTS = (*REPORT_FILES, "effects.json")
+_RESULTS = (*REPORT_FILES, "effects.json", "image_error.png")
 
 
 def register(subparsers) -> None:
@@ -114,6 +114,8 @@ def run(args: argparse.Namespace) -> int:
         "images": result.images,
     }
     atomic_write(out / "effects.json", json.dumps(record, indent=1))
+    if result.images is not None:
+        _plot_image_error(out / "image_error.png", result.images)
     found = "; ".join(
         f"{e['name']}[{e['where']}] = {e['value']:.4g}"
         if e["value"] is not None
@@ -140,3 +142,29 @@ def run(args: argparse.Namespace) -> int:
         f"wrote {', '.join(_RESULTS)} to {out}"
     )
     return 0
+
+
+def _plot_image_error(path, images: dict) -> None:
+    """The held-out runs' image MSE frame by frame, before and after (and refined), with the VPT
+    threshold."""
+    import numpy as np
+
+    from cldyn._misc import atomic_save, optional_import
+
+    plt = optional_import("matplotlib.pyplot", purpose="keyvision identify's plot")
+    figure, axes = plt.subplots(figsize=(5, 3.2), layout="constrained")
+    for name in ("before", "after", "refined"):
+        if name in images:
+            mse = np.asarray(images[name]["mse_over_time"])
+            label = f"{name}: VPT {images[name]['vpt']['mean']:.2f}"
+            axes.plot(images["dt"] * np.arange(mse.size), mse, label=label)
+    axes.axhline(images["threshold"], color="k", linestyle="--", linewidth=1, label="VPT threshold")
+    axes.set(
+        xlabel="time (s)",
+        ylabel="image MSE (mean over runs)",
+        yscale="log",
+        title=f"{images['runs']} held-out runs",
+    )
+    axes.legend(fontsize=8)
+    atomic_save(path, lambda temporary: figure.savefig(temporary, dpi=120))
+    plt.close(figure)
