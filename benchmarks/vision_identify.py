@@ -43,8 +43,14 @@ CASES = [
     ("cartpole", "slider", "damping", 1.0, "joint_damping"),
     ("cartpole", "slider", "damping", 3.0, "joint_damping"),
     ("cartpole", "hinge_1", "damping", 0.01, "joint_damping"),
+    ("cartpole", "hinge_1", "damping", 0.03, "joint_damping"),
+    ("cartpole", "hinge_1", "damping", 0.1, "joint_damping"),
     ("acrobot", "elbow", "damping", 0.1, "joint_damping"),
+    ("acrobot", "elbow", "damping", 0.3, "joint_damping"),
+    ("acrobot", "elbow", "damping", 1.0, "joint_damping"),
     ("acrobot", "shoulder", "damping", 0.1, "joint_damping"),
+    ("acrobot", "shoulder", "damping", 0.3, "joint_damping"),
+    ("acrobot", "shoulder", "damping", 1.0, "joint_damping"),
 ]
 # dm_control's own physics under KeyCLD's camera and look (`keycld_scene(physics="stock")`): effects
 # nobody injected by hand. scene -> (what the stock scene has that KeyCLD's lacks, effect, joint -> value)
@@ -84,6 +90,7 @@ def _case(scene: str, joints: dict | None, seed: int, args, *, stock: bool = Fal
         jax.clear_caches()
     report = result.identification
     return {
+        "model": _relative(args.models[scene]),
         "outcome": report.outcome,
         "effects": list(result.effects),
         "adequacy": list(report.adequacy.problems) if report.adequacy is not None else [],
@@ -94,6 +101,11 @@ def _case(scene: str, joints: dict | None, seed: int, args, *, stock: bool = Fal
         "energy_spread": result.energy_spread,
         "seconds": round(time.perf_counter() - started, 1),
     }
+
+
+def _relative(directory) -> str:
+    path = pathlib.Path(directory).resolve()
+    return str(path.relative_to(ROOT) if path.is_relative_to(ROOT) else path)
 
 
 def main() -> None:
