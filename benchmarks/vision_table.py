@@ -22,6 +22,8 @@ one validation run, true and as each model predicts it); prints the JSON.
 """
 
 import argparse
+import contextlib
+import io
 import json
 import os
 import pathlib
@@ -64,15 +66,56 @@ def _seconds(model: pathlib.Path) -> float:
     return total + float((shared or {}).get("autoencoder_seconds") or 0.0)
 
 
+class _Tee(io.StringIO):
+    """Writes through to `stream` and keeps a copy (a failed command's error line, for the table)."""
+
+    def __init__(self, stream):
+        super().__init__()
+        self.stream = stream
+
+    def write(self, text: str) -> int:
+        self.stream.write(text)
+        return super().write(text)
+
+    def text(self) -> str:
+        return self.getvalue()
+
+
+def _last_stage(model: pathlib.Path) -> str | None:
+    """The last stage of an unfinished training that left a model, in training order."""
+    from keyvision._train import stage_names
+
+    order = ["autoencoder", "dynamics", *(n for r in range(1, 10) for n in stage_names(r))]
+    done = [stage for stage in order if (model / f"model-{stage}.eqx").is_file()]
+    return done[-1] if done else None
+
+
 def _train_and_evaluate(model: pathlib.Path, data: pathlib.Path, options: list) -> dict:
-    if not (model / "model.eqx").is_file():
+    """Train (or resume) and evaluate one model. A training that stops (a diverging stage) is a result
+    too: recorded in `stopped.json` (so that later calls do not train it again) and the model of its
+    last finished stage is evaluated in its place."""
+    stopped = model / "stopped.json"
+    if not (model / "model.eqx").is_file() and not stopped.is_file():
         resume = ["--resume"] if (model / "keyvision.json").is_file() else []
-        _cli("train", "--data", data, "--out", model, *options, *resume, "--no-progress")
+        errors = _Tee(sys.stderr)
+        try:
+            with contextlib.redirect_stderr(errors):
+                _cli("train", "--data", data, "--out", model, *options, *resume, "--no-progress")
+        except SystemExit as error:
+            stage = _last_stage(model)
+            if stage is None:
+                raise
+            said = [line for line in errors.text().splitlines() if "error:" in line]
+            note = {"error": said[-1] if said else str(error), "evaluated_stage": stage}
+            stopped.write_text(json.dumps(note, indent=1) + "\n")
+            print(f"{model}: the training stopped ({error}); evaluating its {stage} stage", flush=True)
+    note = json.loads(stopped.read_text()) if stopped.is_file() else None
+    stage = ["--stage", note["evaluated_stage"]] if note else []
     evaluation = model.parent / f"{model.name}-evaluate"
     if not (evaluation / "vpt.json").is_file():
-        _cli("evaluate", "--model", model, "--data", data, "--out", evaluation, "--overwrite")
+        _cli("evaluate", "--model", model, *stage, "--data", data, "--out", evaluation, "--overwrite")
     vpt = json.loads((evaluation / "vpt.json").read_text())
-    return {"model": str(model), "seconds": round(_seconds(model), 1), **vpt}
+    return {"model": str(model), "seconds": round(_seconds(model), 1), "stopped": note, **vpt}
 
 
 def _summary(evaluations: list[dict]) -> dict:
@@ -82,6 +125,7 @@ def _summary(evaluations: list[dict]) -> dict:
         "std": float(per_run.std()),
         "median": float(np.median(per_run)),
         "seed_means": [e["vpt"]["mean"] for e in evaluations],
+        "stopped": [e["stopped"] for e in evaluations if e.get("stopped")],
         "runs": evaluations[0]["runs"],
         "seconds": [e["seconds"] for e in evaluations],
         "mse_per_run": np.concatenate([np.asarray(e["mse_per_run"]) for e in evaluations]).tolist(),
@@ -125,7 +169,9 @@ def _plot_frames(path: pathlib.Path, data: pathlib.Path, models: dict, run: int 
     images = validation.images(np.float32)[run]
     rows = {"ground truth": images}
     for name, directory in models.items():
-        model, _ = keyvision.load_model(directory)
+        stopped = pathlib.Path(directory) / "stopped.json"
+        stage = json.loads(stopped.read_text())["evaluated_stage"] if stopped.is_file() else None
+        model, _ = keyvision.load_model(directory, stage=stage)
         predict = eqx.filter_jit(keyvision.predict)
         rows[name] = np.asarray(predict(model, images, validation.u[run].astype(np.float32), validation.dt))
     shown = range(0, images.shape[0], FRAME_EVERY)
@@ -198,7 +244,8 @@ def main() -> None:
 
 def _finished(model: pathlib.Path) -> bool:
     evaluation = model.parent / f"{model.name}-evaluate" / "vpt.json"
-    return (model / "model.eqx").is_file() and evaluation.is_file()
+    trained = (model / "model.eqx").is_file() or (model / "stopped.json").is_file()
+    return trained and evaluation.is_file()
 
 
 def _write(scenes: dict, args, device: str, seconds: float) -> None:
@@ -236,6 +283,8 @@ def _write(scenes: dict, args, device: str, seconds: float) -> None:
             paper = PAPER.get(name, {}).get(scene)
             row = rows.get(name)
             cell = "-" if row is None else f"{row['mean']:.2f} +- {row['std']:.2f} ({row['median']:.2f})"
+            if row is not None and row.get("stopped"):  # a training that diverged: see the notes
+                cell += " *"
             cells.append(cell + ("" if paper is None else f" [{paper:.2f}]"))
         lines.append(f"| {name} | " + " | ".join(cells) + " |")
     lines += ["", "| model | " + " | ".join(scenes) + " |", "| --- |" + " --- |" * len(scenes)]
@@ -245,6 +294,15 @@ def _write(scenes: dict, args, device: str, seconds: float) -> None:
             for rows in scenes.values()
         ]
         lines.append(f"| {name} | " + " | ".join(cells) + " |")
+    stops = [
+        f"- {name}, {scene}: {stop['error']}; the model after its `{stop['evaluated_stage']}` stage is "
+        "evaluated in its place."
+        for scene, rows in scenes.items()
+        for name, row in rows.items()
+        for stop in row.get("stopped") or []
+    ]
+    if stops:
+        lines += ["", "\\* The training stopped before its end:", "", *stops]
     write("vision_table", result, "\n".join(lines) + "\n")
 
 
