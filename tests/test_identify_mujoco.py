@@ -214,9 +214,6 @@ def test_a_learned_nominal_model_still_leads_to_the_damping():
         actuator_names=bridge.actuator_names,
         keypoint_names=bridge.keypoint_names,
         bootstrap=50,
-        # one round: the question is whether the damping is found; a second round refits the neural
-        # potential for every remaining candidate (most of this test's time) and finds nothing more
-        max_rounds=1,
     )
     found = {(d.name, d.where): d.value for d in result.detected}
     assert abs(found[("joint_damping", "elbow")] - 0.05) <= VALUE_RTOL * 0.05
