@@ -77,9 +77,6 @@ class _Tee(io.StringIO):
         self.stream.write(text)
         return super().write(text)
 
-    def text(self) -> str:
-        return self.getvalue()
-
 
 def _last_stage(model: pathlib.Path) -> str | None:
     """The last stage of an unfinished training that left a model, in training order."""
@@ -88,6 +85,12 @@ def _last_stage(model: pathlib.Path) -> str | None:
     order = ["autoencoder", "dynamics", *(n for r in range(1, 10) for n in stage_names(r))]
     done = [stage for stage in order if (model / f"model-{stage}.eqx").is_file()]
     return done[-1] if done else None
+
+
+def _stopped(model: pathlib.Path) -> dict | None:
+    """What `stopped.json` says of a training that stopped before its end, or None."""
+    stopped = model / "stopped.json"
+    return json.loads(stopped.read_text()) if stopped.is_file() else None
 
 
 def _train_and_evaluate(model: pathlib.Path, data: pathlib.Path, options: list) -> dict:
@@ -105,11 +108,11 @@ def _train_and_evaluate(model: pathlib.Path, data: pathlib.Path, options: list) 
             stage = _last_stage(model)
             if stage is None:
                 raise
-            said = [line for line in errors.text().splitlines() if "error:" in line]
+            said = [line for line in errors.getvalue().splitlines() if "error:" in line]
             note = {"error": said[-1] if said else str(error), "evaluated_stage": stage}
             stopped.write_text(json.dumps(note, indent=1) + "\n")
             print(f"{model}: the training stopped ({error}); evaluating its {stage} stage", flush=True)
-    note = json.loads(stopped.read_text()) if stopped.is_file() else None
+    note = _stopped(model)
     stage = ["--stage", note["evaluated_stage"]] if note else []
     evaluation = model.parent / f"{model.name}-evaluate"
     if not (evaluation / "vpt.json").is_file():
@@ -169,9 +172,8 @@ def _plot_frames(path: pathlib.Path, data: pathlib.Path, models: dict, run: int 
     images = validation.images(np.float32)[run]
     rows = {"ground truth": images}
     for name, directory in models.items():
-        stopped = pathlib.Path(directory) / "stopped.json"
-        stage = json.loads(stopped.read_text())["evaluated_stage"] if stopped.is_file() else None
-        model, _ = keyvision.load_model(directory, stage=stage)
+        note = _stopped(pathlib.Path(directory))
+        model, _ = keyvision.load_model(directory, stage=note["evaluated_stage"] if note else None)
         predict = eqx.filter_jit(keyvision.predict)
         rows[name] = np.asarray(predict(model, images, validation.u[run].astype(np.float32), validation.dt))
     shown = range(0, images.shape[0], FRAME_EVERY)
