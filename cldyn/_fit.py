@@ -179,6 +179,11 @@ def _put(tree, sharding):
     return eqx.combine(jax.device_put(arrays, sharding), rest)
 
 
+# one object, not a fresh one per call: the compiled steps take the optimiser as a static argument,
+# and an equal but new optimiser would compile them again for every `fit` of the same model
+_DEFAULT_OPTIMIZER = optax.chain(optax.clip(5.0), optax.adam(3e-4))
+
+
 @eqx.filter_jit
 def _evaluate_loss(model, data, *, loss):
     return loss(model, data)
@@ -328,7 +333,7 @@ def fit(
             raise NotADirectoryError(f"fit: the output {out} exists and is not a directory")
         out.mkdir(parents=True, exist_ok=True)
         files = fit_files(out, stage, history_format)
-    optimizer = optax.chain(optax.clip(5.0), optax.adam(3e-4)) if optimizer is None else optimizer
+    optimizer = _DEFAULT_OPTIMIZER if optimizer is None else optimizer
 
     model, data, validation = _cast(model, dtype), _cast(data, dtype), _cast(validation, dtype)
     params, static = _partition(model, trainable)

@@ -148,7 +148,13 @@ class HostLoop(AbstractStepLoop):
             length, sharding):
         """See `AbstractStepLoop`."""
         del length  # the losses of a chunk are stacked, whatever its length
-        bad, done, values = jnp.array(False), jnp.zeros((), jnp.int32), []
+        # placed as the parameters are (committed): the step's own outputs are, and a first call with
+        # uncommitted ones would compile the step a second time
+        leaves = jax.tree.leaves(params)
+        placement = leaves[0].sharding if leaves else None
+        bad = jax.device_put(jnp.array(False), placement)
+        done = jax.device_put(jnp.zeros((), jnp.int32), placement)
+        values = []
         for index in range(start, start + count):
             params, opt_state, value, bad, done = _host_step(
                 params, opt_state, static, data, key, jnp.asarray(index), bad, done,

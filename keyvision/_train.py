@@ -9,6 +9,7 @@ shooting.
 """
 
 import dataclasses
+import functools
 import itertools
 import json
 import math
@@ -316,9 +317,14 @@ def _networks_only(model: KeyCLD):
 
 def _adam(schedule: Schedule, peak: float, steps: int) -> optax.GradientTransformation:
     warmup = min(schedule.warmup_steps, steps // 10)
-    rate = optax.warmup_cosine_decay_schedule(
-        0.0, peak, warmup, max(steps, warmup + 1), end_value=peak * schedule.final_learning_rate
-    )
+    return _clipped_adam(peak, warmup, max(steps, warmup + 1), peak * schedule.final_learning_rate)
+
+
+@functools.cache
+def _clipped_adam(peak: float, warmup: int, steps: int, end: float) -> optax.GradientTransformation:
+    # one object per setting: the compiled steps take the optimiser as a static argument, so a fresh
+    # (equal but not identical) one would compile every stage again on each call of `train`
+    rate = optax.warmup_cosine_decay_schedule(0.0, peak, warmup, steps, end_value=end)
     return optax.chain(optax.clip(5.0), optax.adam(rate))
 
 

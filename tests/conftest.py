@@ -33,6 +33,26 @@ def _dtype_promotion(request):
         yield
 
 
+_STEP_FUNCTIONS = ("jit(_compiled_chunk)", "jit(_host_step)")
+
+
+@pytest.fixture
+def step_compilations():
+    """The names of the optimiser-step functions XLA compiles while the test runs (JAX's monitoring
+    event of a backend compilation)."""
+    names: list[str] = []
+
+    def listen(event, duration, **kwargs):
+        del duration
+        name = str(kwargs.get("fun_name", ""))
+        if event == "/jax/core/compile/backend_compile_duration" and name in _STEP_FUNCTIONS:
+            names.append(name)
+
+    jax.monitoring.register_event_duration_secs_listener(listen)
+    yield names
+    jax.monitoring.unregister_event_duration_listener(listen)
+
+
 def pytest_collection_modifyitems(config, items):
     """Modules with slow tests first: the two workers share the long tests, and the short ones even
     out the end of the run instead of one long test keeping a worker busy after the other has

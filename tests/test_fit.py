@@ -349,6 +349,19 @@ def test_frozen_parameters_stay_put_and_float32_is_the_default():
     assert not np.array_equal(np.asarray(model.mass.sqrt_masses, np.float32), leaf.model.mass.sqrt_masses)
 
 
+@pytest.mark.parametrize("loop", [cldyn.CompiledLoop(), cldyn.HostLoop()], ids=["compiled", "host"])
+def test_the_step_is_compiled_once_for_every_chunk_and_every_fit(loop, step_compilations):
+    # several chunks (log points) in one fit, then a second fit of the same model: neither the
+    # default optimiser nor the loop's first state may make the compiled step a new one
+    model, data = _tiny_fit_setup()
+    fit = lambda seed: cldyn.fit(model, data, loss=cldyn.Collocation(), steps=6, log_every=2,
+                                 key=jax.random.key(seed), loop=loop, batching=cldyn.Runs(4))
+    fit(0)
+    assert len(step_compilations) == 1, step_compilations
+    fit(1)
+    assert len(step_compilations) == 1, step_compilations
+
+
 def test_progress_meter_reports_each_record(capsys):
     model, data = _tiny_fit_setup()
     cldyn.fit(
