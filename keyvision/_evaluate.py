@@ -311,16 +311,33 @@ def draw_keypoints(
 _PALETTE = ((1.0, 0.0, 0.0), (0.0, 0.8, 1.0), (1.0, 1.0, 0.0), (0.0, 1.0, 0.0), (1.0, 0.0, 1.0))
 
 
-def predict_runs(model, images, controls, dt: float, batch: int = 8) -> tuple[np.ndarray, np.ndarray]:
-    """Every run's predicted keypoints and frames, `batch` runs per compiled call (the last call
-    padded to the same shape)."""
-
-    @eqx.filter_jit
-    @jax.vmap
-    def predict(z, u):
+@eqx.filter_jit
+def _predict_batch(model, z, u, dt: float):
+    # the model an argument, not a constant of the compiled function: models of one structure (the
+    # stages of a training, a model before and after a refit) share one compilation
+    def one(z, u):
         keypoints = predict_keypoints(model, z, u, dt)
         return keypoints, model.decode(keypoints)
 
+    return jax.vmap(one)(z, u)
+
+
+@eqx.filter_jit
+def encode_batch(model, images):
+    """The keypoints of a batch of frames `(B, H, W, C)` (compiled once per model structure)."""
+    return jax.vmap(model.encode)(images)
+
+
+@eqx.filter_jit
+def decode_batch(model, keypoints):
+    """The frames drawn from a batch of keypoints `(B, 2K)` (compiled once per model structure)."""
+    return jax.vmap(model.decode)(keypoints)
+
+
+def predict_runs(model, images, controls, dt: float, batch: int = 8) -> tuple[np.ndarray, np.ndarray]:
+    """Every run's predicted keypoints and frames, `batch` runs per compiled call (the last call
+    padded to the same shape)."""
+    predict = lambda z, u: _predict_batch(model, z, u, float(dt))
     runs = images.shape[0]
     batch = min(batch, runs)
     parts = []

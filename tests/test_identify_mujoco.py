@@ -135,9 +135,18 @@ def _check(result, effect, where, truth, rtol):
     assert drop >= MIN_ROLLOUT_DROP, f"rollout error {result.before} -> {result.after}"
 
 
+def _group(scene):
+    """One pytest-xdist group per scene (`make test` runs `--dist loadgroup`): its tests share the
+    nominal model's compilations, and the models with one damping (the noise test, two effects at
+    once) share those of the matrix."""
+    return pytest.mark.xdist_group(scene.replace("/", "-"))
+
+
 @pytest.mark.slow
 @pytest.mark.parametrize(
-    "scene, effect, where, change, truth", CASES, ids=[f"{c[0].split('/')[1]}-{c[1]}-{c[2]}" for c in CASES]
+    "scene, effect, where, change, truth",
+    [pytest.param(*c, marks=_group(c[0])) for c in CASES],
+    ids=[f"{c[0].split('/')[1]}-{c[1]}-{c[2]}" for c in CASES],
 )
 def test_injected_effect_is_found(scene, effect, where, change, truth):
     # dm_control's MJCF compiles angles in degrees: springref is given in degrees, reported in radians
@@ -150,6 +159,7 @@ def test_injected_effect_is_found(scene, effect, where, change, truth):
 
 
 @pytest.mark.slow
+@_group("keycld/acrobot")
 def test_nothing_is_found_in_effect_free_data():
     found = []
     for seed in range(10):
@@ -159,6 +169,7 @@ def test_nothing_is_found_in_effect_free_data():
 
 
 @pytest.mark.slow
+@_group("keycld/acrobot")
 def test_two_effects_at_once_are_both_found():
     change = dict(joints={"elbow": {"damping": 0.1}, "shoulder": {"stiffness": 10.0, "springref": 20}})
     result = _identify("keycld/acrobot", change, 7, near=("shoulder", np.radians(20)))
@@ -171,7 +182,14 @@ def test_two_effects_at_once_are_both_found():
 @pytest.mark.slow
 @pytest.mark.parametrize(
     "scene, where, damping",
-    [("keycld/pendulum", "hinge", 0.1), ("keycld/cartpole", "slider", 1.0), ("keycld/acrobot", "elbow", 0.1)],
+    [
+        pytest.param(scene, where, damping, marks=_group(scene))
+        for scene, where, damping in [
+            ("keycld/pendulum", "hinge", 0.1),
+            ("keycld/cartpole", "slider", 1.0),
+            ("keycld/acrobot", "elbow", 0.1),
+        ]
+    ],
 )
 def test_damping_is_found_through_1mm_noise(scene, where, damping):
     result = _identify(scene, dict(joints={where: {"damping": damping}}), 31, noise=1e-3)

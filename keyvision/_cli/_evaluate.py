@@ -135,22 +135,17 @@ def report(model, validation, out, *, batch: int = 8, strip_run: int = 0) -> tup
     strip.png and prediction.gif to `out`; returns the record for vpt.json and a summary line."""
     import keyvision
 
-    from .._evaluate import predict_runs
+    from .._evaluate import decode_batch, encode_batch, predict_runs
 
     images = validation.images(np.float32)
     controls = validation.u.astype(np.float32)
     predicted_keypoints, predicted = predict_runs(model, images, controls, validation.dt, batch)
-    import equinox as eqx
-    import jax
-
-    encode = eqx.filter_jit(lambda m, z: jax.vmap(m.encode)(z))
-    decode = eqx.filter_jit(lambda m, x: jax.vmap(m.decode)(x))
     estimated = np.concatenate(
-        [np.asarray(encode(model, images[i : i + batch])) for i in range(0, len(images), batch)]
+        [np.asarray(encode_batch(model, images[i : i + batch])) for i in range(0, len(images), batch)]
     )
     # the autoencoder's ceiling: every frame drawn from its own estimated keypoints (perfect dynamics)
     redrawn = np.concatenate(
-        [np.asarray(decode(model, estimated[i : i + batch])) for i in range(0, len(images), batch)]
+        [np.asarray(decode_batch(model, estimated[i : i + batch])) for i in range(0, len(images), batch)]
     )
     threshold = keyvision.prediction_threshold(images)
     vpt = np.asarray(keyvision.valid_prediction_time(predicted, images, threshold=threshold))
