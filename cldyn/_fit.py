@@ -235,7 +235,9 @@ def fit(
     - `steps`: the total number of optimiser steps (a resumed fit continues up to it).
     - `key`: a `jax.random` key for the batches.
     - `optimizer`: an optax optimiser; by default Adam with learning rate `3e-4` after element-wise
-      gradient clipping at 5, as in the KeyCLD authors' code.
+      gradient clipping at 5, as in the KeyCLD authors' code. The compiled step is kept for the next
+      `fit` of a model of the same structure with the same loss, batching and optimiser object: pass
+      one optimiser to several fits rather than building an equal one for each, which compiles anew.
     - `batching`: how batches are drawn: `cldyn.Runs(batch_size)` (whole runs, the default with 32)
       or `cldyn.Windows(batch_size, length)` (windows of consecutive samples).
     - `validation`: held-out data; their loss is computed every `validate_every` steps and at the end.

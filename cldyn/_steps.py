@@ -94,7 +94,9 @@ def _compiled_chunk(
 
 class CompiledLoop(AbstractStepLoop):
     """The steps of a chunk as one compiled `lax.while_loop` (`fit`'s default): no Python between
-    steps, the fastest loop for small models. It is compiled once per fit.
+    steps, the fastest loop for small models. It is compiled once per model structure, loss,
+    batching, optimiser (see `fit`) and chunk length (the shortest of `fit`'s intervals between log,
+    validation and checkpoint points).
 
     !!! example
 
