@@ -357,9 +357,10 @@ def test_the_step_is_compiled_once_for_every_chunk_and_every_fit(loop, step_comp
     fit = lambda seed: cldyn.fit(model, data, loss=cldyn.Collocation(), steps=6, log_every=2,
                                  key=jax.random.key(seed), loop=loop, batching=cldyn.Runs(4))
     fit(0)
-    assert len(step_compilations) == 1, step_compilations
+    first = len(step_compilations)  # none where an earlier test of this worker compiled the same step
+    assert first <= 1, step_compilations
     fit(1)
-    assert len(step_compilations) == 1, step_compilations
+    assert len(step_compilations) == first, step_compilations
 
 
 def test_progress_meter_reports_each_record(capsys):
