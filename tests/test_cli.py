@@ -349,11 +349,11 @@ def test_control(tmp_path, capsys):
 @pytest.mark.slow
 def test_identify(tmp_path, capsys):
     pytest.importorskip("mujoco")
-    path = tmp_path / "acrobot.npz"
+    path = tmp_path / "pendulum.npz"
     argv = [
         "record",
         "--mjcf",
-        "acrobot",
+        "pendulum",
         "--out",
         str(path),
         "--runs",
@@ -364,7 +364,7 @@ def test_identify(tmp_path, capsys):
         "0.01",
     ]
     assert _run(capsys, argv + ["--physics-dt", "0.002", "--integrator", "rk4", "--noise", "0.001"])[0] == 0
-    argv = ["identify", "--data", str(path), "--model", "acrobot", "--out", str(tmp_path / "report")]
+    argv = ["identify", "--data", str(path), "--model", "pendulum", "--out", str(tmp_path / "report")]
     argv += ["--effects", "joint_damping", "joint_spring", "--bootstrap", "10", "--max-rounds", "1"]
     status, out, _ = _run(capsys, argv)
     assert status == 0
@@ -373,6 +373,9 @@ def test_identify(tmp_path, capsys):
     report = json.loads((tmp_path / "report" / "report.json").read_text())
     assert report["settings"]["effects"] == ["joint_damping", "joint_spring"]
     assert (tmp_path / "report" / "report.md").is_file()
+    # dm_control's pendulum damps its hinge (0.1 N m s), which the model from the same MJCF leaves out
+    assert [(d["effect"], d["where"]) for d in report["detected"]] == [("joint_damping", "hinge")]
+    assert "detected joint_damping at hinge" in out
 
 
 @pytest.mark.mujoco
