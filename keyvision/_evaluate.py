@@ -323,15 +323,10 @@ def _predict_batch(model, z, u, dt: float):
 
 
 @eqx.filter_jit
-def encode_batch(model, images):
-    """The keypoints of a batch of frames `(B, H, W, C)` (compiled once per model structure)."""
-    return jax.vmap(model.encode)(images)
-
-
-@eqx.filter_jit
 def decode_batch(model, keypoints):
-    """The frames drawn from a batch of keypoints `(B, 2K)` (compiled once per model structure)."""
-    return jax.vmap(model.decode)(keypoints)
+    """The frames drawn from keypoints `(..., 2K)` (compiled once per model structure; the
+    counterpart of `keyvision._train._encode_chunk`)."""
+    return model.decode(keypoints)
 
 
 def predict_runs(model, images, controls, dt: float, batch: int = 8) -> tuple[np.ndarray, np.ndarray]:
