@@ -285,9 +285,9 @@ class EnergyShaping(AbstractControl):
       `-k_d g^T xd` on the passive output as eq. 32 prints it. The strings `"keypoint"` and `"output"`
       are shorthands for them.
     - `metric`: the metric of the shaped potential and of keypoint damping. `"euclidean"` (default)
-      is eq. 32: $V_d = \tfrac12 k_p |x - x^*|^2$ and damping force $-k_d \dot x$. `"mass"` weighs both
-      by the constant mass matrix $M$: $V_d = \tfrac12 k_p (x - x^*)^T M (x - x^*)$ and $-k_d M \dot x$,
-      so that near the target every mode obeys $\ddot e + k_d \dot e + k_p e = 0$ (fully actuated,
+      is eq. 32: $V_d = \\tfrac12 k_p |x - x^*|^2$ and damping force $-k_d \\dot x$. `"mass"` weighs both
+      by the constant mass matrix $M$: $V_d = \\tfrac12 k_p (x - x^*)^T M (x - x^*)$ and $-k_d M \\dot x$,
+      so that near the target every mode obeys $\\ddot e + k_d \\dot e + k_p e = 0$ (fully actuated,
       exact potential): the gains are rates (`kp` in 1/s², `kd` in 1/s) whatever the masses. A
       Lagrangian learnt from images is only defined up to a factor (`M`, `V` and `g` scaled together
       give the same motion), and eq. 32's gains act differently at each factor; with `"mass"` the
