@@ -15,6 +15,7 @@ previous rows); prints the JSON.
     python benchmarks/vision_identify.py --scenes pendulum --attributes frictionloss --seeds 0
     python benchmarks/vision_identify.py --scenes pendulum --attributes damping --seeds 0 --refine-steps 300
     python benchmarks/vision_identify.py --scenes acrobot --attributes stock --seeds 0  # the stock acrobot
+    python benchmarks/vision_identify.py --scenes acrobot --attributes stock --frames 300   # 3 s runs
 
 The stock cases render dm_control's own physics under KeyCLD's camera and look
 (`cldyn.mujoco.keycld_scene(name, physics="stock")`); the model's inputs take the frames' controls by
@@ -71,7 +72,9 @@ def _case(scene: str, joints: dict | None, seed: int, args, *, stock: bool = Fal
 
     source = f"keycld/{scene}" + (":stock" if stock else "")
     xml = cldyn.mujoco.modify_scene(source, joints=joints) if joints else source
-    protocol = keyvision.RenderProtocol(runs=args.runs, validation_runs=args.validation_runs)
+    protocol = keyvision.RenderProtocol(
+        runs=args.runs, validation_runs=args.validation_runs, frames=args.frames
+    )
     frames = keyvision.render(xml, protocol=protocol, seed=seed, workers=1)
     model, spec = keyvision.load_model(args.models[scene])
     # the model's inputs are the actuators of the scene it learnt from: the frames' controls by name
@@ -91,6 +94,7 @@ def _case(scene: str, joints: dict | None, seed: int, args, *, stock: bool = Fal
     report = result.identification
     return {
         "model": _relative(args.models[scene]),
+        "frames": args.frames,
         "outcome": report.outcome,
         "effects": list(result.effects),
         "adequacy": list(report.adequacy.problems) if report.adequacy is not None else [],
@@ -121,6 +125,12 @@ def main() -> None:
     parser.add_argument("--no-stock", dest="stock", action="store_false", help="skip the stock-physics cases")
     parser.add_argument("--runs", type=int, default=60)
     parser.add_argument("--validation-runs", type=int, default=10)
+    parser.add_argument(
+        "--frames",
+        type=int,
+        default=50,
+        help="frames per run (the paper's 50 by default; longer runs for effects too slow to show in 50)",
+    )
     parser.add_argument("--seeds", type=int, default=5, help="seeds of the effect-free data per scene")
     parser.add_argument(
         "--refine-steps",
@@ -181,17 +191,23 @@ def main() -> None:
         for seed in range(args.seeds):
             negatives.append({"scene": scene, "seed": seed, **_case(scene, None, seed, args)})
     previous = RESULTS / "vision_identify.json"
-    case = lambda r: (r["scene"], r["joint"], r["attribute"], r["truth"])
+    case = lambda r: (r["scene"], r["joint"], r["attribute"], r["truth"], r.get("frames", 50))
     if previous.is_file():  # the cases and negative controls not run this time keep their previous rows
         earlier = json.loads(previous.read_text())
-        negative = lambda n: (n["scene"], n["seed"])
+        negative = lambda n: (n["scene"], n["seed"], n.get("frames", 50))
         ran = {case(r) for r in rows} | {negative(n) for n in negatives}
         rows = [r for r in earlier.get("cases", []) if case(r) not in ran] + rows
         negatives = [n for n in earlier.get("negatives", []) if negative(n) not in ran] + negatives
     order = list(MODELS)
     keys = [c[:4] for c in CASES]
-    rows.sort(key=lambda r: (order.index(r["scene"]), keys.index(case(r)) if case(r) in keys else len(keys)))
-    negatives.sort(key=lambda n: (order.index(n["scene"]), n["seed"]))
+    rows.sort(
+        key=lambda r: (
+            order.index(r["scene"]),
+            keys.index(case(r)[:4]) if case(r)[:4] in keys else len(keys),
+            r.get("frames", 50),
+        )
+    )
+    negatives.sort(key=lambda n: (order.index(n["scene"]), n["seed"], n.get("frames", 50)))
     scenes = [scene for scene in order if any(n["scene"] == scene for n in negatives)]
     result = {
         "machine": machine(),
@@ -204,7 +220,8 @@ def main() -> None:
         "# Missing physics from camera frames (keyvision identify)",
         "",
         f"{args.runs} runs of the paper's protocol per case ({args.validation_runs} held out for the image "
-        "errors), rendered with one effect injected, identified against the scene's model learnt from images "
+        "errors; 50 frames each unless the row says more: longer runs for effects too slow to show in "
+        "0.5 s), rendered with one effect injected, identified against the scene's model learnt from images "
         "(`benchmarks/vision_identify.py`). Values in MuJoCo's units (`keyvision.identify`'s conversion).",
         "",
         "| scene | injected | outcome | found | value (error) | held-out VPT before -> after "
@@ -233,16 +250,20 @@ def main() -> None:
                 vpt += f" -> {images['refined']['vpt']['mean']:.3f} (image refit)"
                 mse += f" -> {images['refined']['mse']:.2e} (image refit)"
         outcome = row["outcome"] + (f" ({'; '.join(row['adequacy'])})" if row.get("adequacy") else "")
+        frames = row.get("frames", 50)
+        length = f", runs of {frames} frames" if frames != 50 else ""
         lines.append(
-            f"| {row['scene']} | {row['attribute']} {row['truth']} at {row['joint']} | {outcome} | {found} "
-            f"| {value} | {vpt} | {mse} |"
+            f"| {row['scene']} | {row['attribute']} {row['truth']} at {row['joint']}{length} | {outcome} "
+            f"| {found} | {value} | {vpt} | {mse} |"
         )
     lines += ["", "Effect-free data (negative control):", ""]
     for scene in scenes:
-        mine = [n for n in negatives if n["scene"] == scene]
-        quiet = sum(1 for n in mine if not n["effects"])
-        outcomes = ", ".join(n["outcome"] for n in mine)
-        lines.append(f"- {scene}: nothing detected in {quiet} of {len(mine)} seeds ({outcomes})")
+        for frames in sorted({n.get("frames", 50) for n in negatives if n["scene"] == scene}):
+            mine = [n for n in negatives if n["scene"] == scene and n.get("frames", 50) == frames]
+            quiet = sum(1 for n in mine if not n["effects"])
+            outcomes = ", ".join(n["outcome"] for n in mine)
+            length = f" (runs of {frames} frames)" if frames != 50 else ""
+            lines.append(f"- {scene}{length}: nothing detected in {quiet} of {len(mine)} seeds ({outcomes})")
     write("vision_identify", result, "\n".join(lines) + "\n")
 
 
