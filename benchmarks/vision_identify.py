@@ -36,6 +36,7 @@ sys.path.insert(0, str(ROOT / "benchmarks"))
 from _common import RESULTS, VISION_MODELS, machine, write  # noqa: E402
 
 MODELS = VISION_MODELS
+PAPER_FRAMES = 50  # frames per run in the paper's protocol; rows of other lengths say theirs
 # (scene, joint, MJCF attribute, value, the effect identify reports)
 CASES = [
     ("pendulum", "hinge", "damping", 0.1, "joint_damping"),
@@ -107,6 +108,10 @@ def _case(scene: str, joints: dict | None, seed: int, args, *, stock: bool = Fal
     }
 
 
+def _frames(row: dict) -> int:
+    return row.get("frames", PAPER_FRAMES)  # rows from before --frames: the paper's
+
+
 def _relative(directory) -> str:
     path = pathlib.Path(directory).resolve()
     return str(path.relative_to(ROOT) if path.is_relative_to(ROOT) else path)
@@ -128,7 +133,7 @@ def main() -> None:
     parser.add_argument(
         "--frames",
         type=int,
-        default=50,
+        default=PAPER_FRAMES,
         help="frames per run (the paper's 50 by default; longer runs for effects too slow to show in 50)",
     )
     parser.add_argument("--seeds", type=int, default=5, help="seeds of the effect-free data per scene")
@@ -191,10 +196,10 @@ def main() -> None:
         for seed in range(args.seeds):
             negatives.append({"scene": scene, "seed": seed, **_case(scene, None, seed, args)})
     previous = RESULTS / "vision_identify.json"
-    case = lambda r: (r["scene"], r["joint"], r["attribute"], r["truth"], r.get("frames", 50))
+    case = lambda r: (r["scene"], r["joint"], r["attribute"], r["truth"], _frames(r))
     if previous.is_file():  # the cases and negative controls not run this time keep their previous rows
         earlier = json.loads(previous.read_text())
-        negative = lambda n: (n["scene"], n["seed"], n.get("frames", 50))
+        negative = lambda n: (n["scene"], n["seed"], _frames(n))
         ran = {case(r) for r in rows} | {negative(n) for n in negatives}
         rows = [r for r in earlier.get("cases", []) if case(r) not in ran] + rows
         negatives = [n for n in earlier.get("negatives", []) if negative(n) not in ran] + negatives
@@ -204,10 +209,10 @@ def main() -> None:
         key=lambda r: (
             order.index(r["scene"]),
             keys.index(case(r)[:4]) if case(r)[:4] in keys else len(keys),
-            r.get("frames", 50),
+            _frames(r),
         )
     )
-    negatives.sort(key=lambda n: (order.index(n["scene"]), n["seed"], n.get("frames", 50)))
+    negatives.sort(key=lambda n: (order.index(n["scene"]), n["seed"], _frames(n)))
     scenes = [scene for scene in order if any(n["scene"] == scene for n in negatives)]
     result = {
         "machine": machine(),
@@ -250,19 +255,19 @@ def main() -> None:
                 vpt += f" -> {images['refined']['vpt']['mean']:.3f} (image refit)"
                 mse += f" -> {images['refined']['mse']:.2e} (image refit)"
         outcome = row["outcome"] + (f" ({'; '.join(row['adequacy'])})" if row.get("adequacy") else "")
-        frames = row.get("frames", 50)
-        length = f", runs of {frames} frames" if frames != 50 else ""
+        frames = _frames(row)
+        length = f", runs of {frames} frames" if frames != PAPER_FRAMES else ""
         lines.append(
             f"| {row['scene']} | {row['attribute']} {row['truth']} at {row['joint']}{length} | {outcome} "
             f"| {found} | {value} | {vpt} | {mse} |"
         )
     lines += ["", "Effect-free data (negative control):", ""]
     for scene in scenes:
-        for frames in sorted({n.get("frames", 50) for n in negatives if n["scene"] == scene}):
-            mine = [n for n in negatives if n["scene"] == scene and n.get("frames", 50) == frames]
+        for frames in sorted({_frames(n) for n in negatives if n["scene"] == scene}):
+            mine = [n for n in negatives if n["scene"] == scene and _frames(n) == frames]
             quiet = sum(1 for n in mine if not n["effects"])
             outcomes = ", ".join(n["outcome"] for n in mine)
-            length = f" (runs of {frames} frames)" if frames != 50 else ""
+            length = f" (runs of {frames} frames)" if frames != PAPER_FRAMES else ""
             lines.append(f"- {scene}{length}: nothing detected in {quiet} of {len(mine)} seeds ({outcomes})")
     write("vision_identify", result, "\n".join(lines) + "\n")
 
