@@ -20,10 +20,10 @@ from cldyn._control import hinge_extremes
 from cldyn._misc import check_positive
 
 from ._data import PlanarCamera
+from ._evaluate import encode_batch
 from ._model import KeyCLD, parameter_dtype
 from ._render import RenderProtocol, _scene_xml
 from ._scene import _HINGE, _mujoco, _scene
-from ._train import _encode_chunk
 
 _SETTLE = 0.5  # seconds at the end of a run over which the target must hold
 _SHADOW_SIZE = 512
@@ -429,7 +429,7 @@ def _calibrate(mujoco, scene, data, renderer, model, view, rng, poses: int = 200
         truths.append(view.to_image(_true_keypoints(scene, data)).reshape(-1))
         renderer.update_scene(data, camera=scene.camera)
         frames.append(renderer.render().copy())
-    estimated = np.asarray(_encode_chunk(model, np.stack(frames)))
+    estimated = np.asarray(encode_batch(model, np.stack(frames)))
     truths = np.stack(truths)
     design = np.concatenate([truths, np.ones((poses, 1))], axis=1)
     solution, *_ = np.linalg.lstsq(design, estimated, rcond=None)

@@ -12,9 +12,9 @@ from jaxtyping import Array, ArrayLike, Float
 
 import cldyn
 
-from ._data import Frames
+from ._data import Frames, as_images
 from ._keypoints import frame_to_pixel
-from ._model import KeyCLD
+from ._model import KeyCLD, parameter_dtype
 
 
 def pose_features(frames: Frames) -> Float[np.ndarray, "R T P"]:
@@ -323,9 +323,16 @@ def _predict_batch(model, z, u, dt: float):
 
 
 @eqx.filter_jit
+def encode_batch(model: KeyCLD, frames: Array) -> Array:
+    """The keypoints `(..., 2K)` of frames `(..., H, W, C)` of any dtype `as_images` takes (compiled
+    once per model structure and shape)."""
+    return model.encode(as_images(frames, parameter_dtype(model.estimator)))
+
+
+@eqx.filter_jit
 def decode_batch(model, keypoints):
     """The frames drawn from keypoints `(..., 2K)` (compiled once per model structure; the
-    counterpart of `keyvision._train._encode_chunk`)."""
+    counterpart of `encode_batch`)."""
     return model.decode(keypoints)
 
 

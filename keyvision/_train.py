@@ -29,9 +29,10 @@ import cldyn
 from cldyn._misc import atomic_write, check_positive
 
 from ._augment import Augment
-from ._data import ImageSequences, as_images
+from ._data import ImageSequences
+from ._evaluate import encode_batch
 from ._loss import ConstraintDrift, HeatmapRegulariser, KeypointDynamics, Reconstruction
-from ._model import KeyCLD, parameter_dtype
+from ._model import KeyCLD
 
 _SCHEMA = "keyvision.Train/1"
 _STAGES = ("autoencoder", "dynamics", "joint")
@@ -248,11 +249,6 @@ def assign_keypoints(model: KeyCLD, keypoints: cldyn.Sequences) -> tuple[KeyCLD,
     return permuted, order
 
 
-@eqx.filter_jit
-def _encode_chunk(model: KeyCLD, frames: Array) -> Array:
-    return model.encode(as_images(frames, parameter_dtype(model.estimator)))
-
-
 def encode_sequences(model: KeyCLD, data: ImageSequences) -> cldyn.Sequences:
     """The keypoints of every frame of `data` as a `cldyn.Sequences` (with the controls and `dt`).
 
@@ -278,7 +274,7 @@ def encode_sequences(model: KeyCLD, data: ImageSequences) -> cldyn.Sequences:
     frames = np.asarray(data.frames)
     if padded:
         frames = np.concatenate([frames, np.repeat(frames[-1:], padded, axis=0)], axis=0)
-    parts = [_encode_chunk(model, frames[i : i + chunk]) for i in range(0, runs + padded, chunk)]
+    parts = [encode_batch(model, frames[i : i + chunk]) for i in range(0, runs + padded, chunk)]
     x = jnp.concatenate(parts, axis=0)[:runs]
     return cldyn.Sequences(x, jnp.asarray(data.u).astype(x.dtype), data.dt)
 

@@ -135,14 +135,13 @@ def report(model, validation, out, *, batch: int = 8, strip_run: int = 0) -> tup
     strip.png and prediction.gif to `out`; returns the record for vpt.json and a summary line."""
     import keyvision
 
-    from .._evaluate import decode_batch, predict_runs
-    from .._train import _encode_chunk
+    from .._evaluate import decode_batch, encode_batch, predict_runs
 
     images = validation.images(np.float32)
     controls = validation.u.astype(np.float32)
     predicted_keypoints, predicted = predict_runs(model, images, controls, validation.dt, batch)
     estimated = np.concatenate(
-        [np.asarray(_encode_chunk(model, images[i : i + batch])) for i in range(0, len(images), batch)]
+        [np.asarray(encode_batch(model, images[i : i + batch])) for i in range(0, len(images), batch)]
     )
     # the autoencoder's ceiling: every frame drawn from its own estimated keypoints (perfect dynamics)
     redrawn = np.concatenate(
