@@ -208,8 +208,8 @@ def main() -> None:
         nargs="+",
         choices=["KeyCLD", *VARIANTS],
         default=["KeyCLD", *VARIANTS],
-        help="the rows to train, in this order (default: all; KeyCLD's first seed always comes first, "
-        "since the ablations but FC start from its autoencoder)",
+        help="the rows to train, in this order (default: all); KeyCLD's first seed is trained first in "
+        "any case, since the ablations but FC start from its autoencoder",
     )
     parser.add_argument(
         "--report",
@@ -239,7 +239,7 @@ def main() -> None:
         for name in order:
             options, shared, seeds = plan[name]
             if name == "KeyCLD" and "KeyCLD" not in args.models:
-                seeds = min(seeds, 1)  # only the autoencoder the others share
+                seeds = min(seeds, 1)  # its first seed, from whose autoencoder the ablations but FC start
             slug = "keycld" if name == "KeyCLD" else name.lower().replace(" ", "-")
             share = ["--networks-from", out / "keycld-0"] if shared else []
             runs = [
