@@ -12,6 +12,7 @@ import functools
 import importlib.util
 import itertools
 import json
+import re
 
 import jax
 import jax.numpy as jnp
@@ -20,7 +21,7 @@ import pytest
 from helpers import reference_systems, simulate_reference
 
 import cldyn
-from cldyn._identify.regression import Normal, fit
+from cldyn._identify.regression import Groups, Normal, fit, inadmissible
 from cldyn._identify.smoothing import prepare
 
 DAMPING_RTOL = 0.05  # linear damping beside the quadratic one, on exact data
@@ -154,6 +155,37 @@ def test_constrained_least_squares_matches_brute_force():
     assert theta[1] == 0.0 and theta[3] == 0.0 and theta[0] > 0
 
 
+def test_a_residual_that_asks_for_a_forbidden_sign_is_named_not_detected():
+    # columns of a damping, an armature (both non-negative by physics) and an actuator gain (free);
+    # the residual holds -0.4 of the armature's column: a model with too much inertia
+    from cldyn._identify.base import Candidate
+    from cldyn._identify.library import ActuatorGainEffect, JointArmatureEffect, JointDampingEffect
+
+    rng = np.random.default_rng(1)
+    F = rng.normal(size=(400, 3))
+    r = -0.4 * F[:, 1] + 0.3 * F[:, 2] + 0.05 * rng.normal(size=400)
+    normal = Normal(F.T @ F, F.T @ r, float(r @ r), 400)
+    candidates = (
+        Candidate(JointDampingEffect(), "hinge", 0),
+        Candidate(JointArmatureEffect(), "hinge", 0),
+        Candidate(ActuatorGainEffect(), "motor", 0, acts_on="actuator"),
+    )
+    groups = Groups.of(candidates)
+    scale = np.ones(3)
+    # with the gain selected, the armature's least-squares coefficient is -0.4: named, with its BIC gain
+    found = inadmissible(normal, groups, candidates, [2], correlation=1.0, min_gain=10.0, scale=scale)
+    assert [f.label for f in found] == ["joint_armature[hinge]"]
+    assert found[0].value == pytest.approx(-0.4, abs=0.01)
+    _, rss_without = fit(normal, [2], [0])
+    _, rss_with = fit(normal, [2, 1], [0, 0])
+    expected_gain = 400 * np.log(rss_without / rss_with) - np.log(400)  # BIC, one more parameter
+    assert found[0].bic_gain == pytest.approx(expected_gain, rel=1e-9)
+    # the same residual with the sign flipped is an admissible armature: nothing named
+    positive = 0.8 * F[:, 1] + r
+    flipped = Normal(F.T @ F, F.T @ positive, float(positive @ positive), 400)
+    assert inadmissible(flipped, groups, candidates, [2], correlation=1.0, min_gain=10.0, scale=scale) == ()
+
+
 # -- data from independent references ------------------------------------------------------------
 
 
@@ -270,6 +302,20 @@ def test_identify_gives_the_same_damping_at_two_rates():
     assert all(abs(v - b) <= DAMPING_RATES_RTOL * b for v in values)
     assert abs(values[0] - values[1]) <= RATE_AGREEMENT * values[1]
     assert abs(widths[0] - widths[1]) <= 0.1 * widths[1]
+
+
+def test_identify_names_a_residual_of_the_forbidden_sign():
+    # a pendulum that gains energy in proportion to its speed (+b qd, integrated by the reference):
+    # no damping can explain that, so nothing is detected, and the warning names the negative damping
+    b = 0.1
+    system, joints, data, coordinates = _reference_data("pendulum", lambda q, qd: b * qd, seed=4)
+    result = cldyn.identify(
+        system, data, joint_coordinates=coordinates, joints=joints, bootstrap=10, max_rounds=1
+    )
+    assert result.outcome == "nothing detected" and not result.detected, result.summary()
+    (warning,) = [w for w in result.warnings if "asks for" in w]
+    named = dict(re.findall(r"(\w+\[hinge\]) = (-?[0-9.e+-]+)", warning))
+    assert float(named["joint_damping[hinge]"]) == pytest.approx(-b, rel=DAMPING_RTOL)
 
 
 def test_identify_says_when_the_data_cannot_support_a_conclusion():

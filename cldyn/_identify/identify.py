@@ -309,6 +309,16 @@ def identify(
                 round_index=round_index,
             )
             rounds.append(result.round)
+            if result.inadmissible:
+                problems.append(
+                    f"round {round_index}: the residual asks for "
+                    + ", ".join(f.describe() for f in result.inadmissible[:3])
+                    + (f" and {len(result.inadmissible) - 3} more" if len(result.inadmissible) > 3 else "")
+                    + ": a sign no physical effect has; the nominal model overstates what "
+                    + ("it stands" if len(result.inadmissible) == 1 else "they stand")
+                    + " for (too much mass or inertia for a negative armature or point mass, energy lost "
+                    "that the system keeps for a negative damping)"
+                )
             new = [d for d in result.selected if d.detected]
             rejected += [d for d in result.selected if not d.detected]
             info = {"round": round_index, "detected": ", ".join(d.candidate.label for d in new) or "nothing"}

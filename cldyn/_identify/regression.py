@@ -217,6 +217,86 @@ class Attribution:
     selected: tuple[Detection, ...]
     round: Round
     groups: Groups
+    inadmissible: tuple["Inadmissible", ...] = ()
+
+
+@dataclasses.dataclass(frozen=True)
+class Inadmissible:
+    """A candidate the residual asks for with the sign physics forbids (a negative damping, armature
+    or mass, say): strong evidence, by the BIC, that the nominal model overstates what the candidate
+    stands for. Never a detection; identify reports it as a warning. `alternatives`: candidates
+    that explain the same part of the residual (represented, as in a detection's equivalence class, by
+    the one earliest in the order of the effects)."""
+
+    label: str
+    value: float
+    bic_gain: float
+    alternatives: tuple[str, ...] = ()
+    candidate: int = 0  # its index in the round's candidates
+    theta: np.ndarray = dataclasses.field(repr=False, default_factory=lambda: np.zeros(0))
+
+    def describe(self) -> str:
+        same = f"; or {', '.join(self.alternatives)}" if self.alternatives else ""
+        return f"{self.label} = {self.value:.3g} (BIC gain {self.bic_gain:.1f}{same})"
+
+
+def inadmissible(
+    normal: Normal,
+    groups: Groups,
+    candidates: Sequence[Candidate],
+    chosen: Sequence[int],
+    *,
+    correlation: float,
+    min_gain: float,
+    scale: np.ndarray,
+) -> tuple[Inadmissible, ...]:
+    """The candidates outside `chosen` that, added with their sign constraints lifted, lower the BIC
+    by `min_gain` or more at a coefficient of the forbidden sign; strongest first, one per class of
+    candidates that explain the same (adding one to another gains less than `min_gain`)."""
+    columns, signs = groups.select(chosen)
+    _, rss = fit(normal, columns, signs)
+    base = bic(rss, normal.n, len(columns), correlation)
+
+    def free_fit(extra: list[int]) -> tuple[np.ndarray, float]:
+        own = [c for g in extra for c in groups.columns[g]]
+        theta, rss_g = fit(normal, columns + own, signs + [0] * len(own))
+        return theta[len(columns) :], base - bic(rss_g, normal.n, len(columns) + len(own), correlation)
+
+    strong = []
+    for g in range(len(candidates)):
+        own = list(groups.columns[g])
+        if g in chosen or not any(groups.signs[c] > 0 for c in own):
+            continue
+        theta, gain = free_fit([g])
+        if gain >= min_gain and any(groups.signs[c] > 0 and t < 0 for c, t in zip(own, theta)):
+            strong.append((gain, g, theta))
+    # a candidate that adds less than `min_gain` to a stronger one explains nothing more: it joins that
+    # one's class when it explains about as much on its own (within `min_gain`), else it is dropped
+    classes: list[list[tuple[float, int, np.ndarray]]] = []
+    for item in sorted(strong, key=lambda s: (-s[0], s[1])):
+        for members in classes:
+            head = members[0]
+            if free_fit([head[1], item[1]])[1] - head[0] < min_gain:
+                if head[0] - item[0] < min_gain:
+                    members.append(item)
+                break
+        else:
+            classes.append([item])
+    found = []
+    for members in classes:
+        gain, g, theta = min(members, key=lambda m: m[1])  # the earliest in the order of the effects
+        own = list(groups.columns[g])
+        found.append(
+            Inadmissible(
+                candidates[g].label,
+                float(candidates[g].parameters(theta / scale[own])["value"]),
+                float(gain),
+                tuple(candidates[h].label for _, h, _ in members if h != g),
+                g,
+                theta / scale[own],
+            )
+        )
+    return tuple(found)
 
 
 def _per_run_normals(problem: Problem, r, f, kept, scale):
@@ -345,9 +425,7 @@ def attribute(
         holdout_drop = 1.0 - rss_held_with / rss_held_without if rss_held_without > 0 else 0.0
         sd = float(np.std(samples[:, 0])) if samples is not None and len(samples) > 1 else float("inf")
         t_stat = abs(theta[0]) / sd if sd > 0 else float("inf")
-        effect_force = np.einsum("rtmc,c->rtm", problem.f_fit[..., own], theta) * kept[..., None]
-        inertial = max(float(np.sqrt(np.sum((problem.inertial_fit * kept[..., None]) ** 2))), 1e-300)
-        share = float(np.sqrt(np.sum(effect_force**2)) / inertial)
+        share = _share(problem, own, theta)
         main = c.parameters(theta)
         values = np.array([c.parameters(v)["value"] for v in samples]) if samples is not None else None
         lo, hi = (
@@ -392,4 +470,21 @@ def attribute(
         detected=tuple(d.candidate.label for d in selected if d.detected),
         inclusion={d.candidate.label: d.inclusion for d in selected},
     )
-    return Attribution(tuple(selected), summary, groups)
+    # as for a detection, what is too small to matter to the motion is not reported
+    unphysical = tuple(
+        f
+        for f in inadmissible(
+            total, groups, candidates, chosen, correlation=correlation, min_gain=gain, scale=scale
+        )
+        if _share(problem, list(groups.columns[f.candidate]), f.theta) >= criteria.min_share
+    )
+    return Attribution(tuple(selected), summary, groups, unphysical)
+
+
+def _share(problem: Problem, own: list[int], theta: np.ndarray) -> float:
+    """The RMS of the force of columns `own` at coefficients `theta` relative to the inertial forces,
+    over the counted equations of the fit runs."""
+    kept = problem.kept_fit[..., None]
+    force = np.einsum("rtmc,c->rtm", problem.f_fit[..., own], theta) * kept
+    inertial = max(float(np.sqrt(np.sum((problem.inertial_fit * kept) ** 2))), 1e-300)
+    return float(np.sqrt(np.sum(force**2)) / inertial)

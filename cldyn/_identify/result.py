@@ -211,8 +211,8 @@ class Identification:
     - `settings`: everything needed to reproduce the run (JSON-able).
     - `rounds`: one `Round` per round of the loop.
     - `warnings`: what did not go as it should (a refit or an initial-state fit that did not
-      converge, detections whose held-out rollouts got worse, joint limits reached, float32
-      arithmetic); also in the report.
+      converge, detections whose held-out rollouts got worse, joint limits reached, a residual that
+      asks for an effect of a sign no physical effect has, float32 arithmetic); also in the report.
     - `adequacy`: what the data can support (`Adequacy`).
     - `curves`, `scatter`: the data of the plots.
     """
