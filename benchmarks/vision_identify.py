@@ -99,6 +99,7 @@ def _case(scene: str, joints: dict | None, seed: int, args, *, stock: bool = Fal
         "outcome": report.outcome,
         "effects": list(result.effects),
         "adequacy": list(report.adequacy.problems) if report.adequacy is not None else [],
+        "warnings": list(report.warnings),
         "rollout_1s": [report.before.rollout_rmse_1s, report.after.rollout_rmse_1s],
         "images": result.images,
         "refine_steps": refine.joint_steps if refine is not None else 0,
@@ -261,6 +262,24 @@ def main() -> None:
             f"| {row['scene']} | {row['attribute']} {row['truth']} at {row['joint']}{length} | {outcome} "
             f"| {found} | {value} | {vpt} | {mse} |"
         )
+    # what identify names when the residual asks for an effect of the forbidden sign: the model's own error
+    length = lambda r: "" if _frames(r) == PAPER_FRAMES else f", runs of {_frames(r)} frames"  # noqa: E731
+    labels = [f"{r['scene']}, {r['attribute']} {r['truth']} at {r['joint']}{length(r)}" for r in rows]
+    labels += [f"{n['scene']}, effect-free, seed {n['seed']}{length(n)}" for n in negatives]
+    asks = [
+        (f"{label} ({warning.split(':', 1)[0]})", warning.split("asks for ", 1)[1].split(": a sign", 1)[0])
+        for label, row in zip(labels, rows + negatives)
+        for warning in row.get("warnings", [])
+        if "the residual asks for" in warning
+    ]
+    if asks:
+        lines += [
+            "",
+            "Where the residual asks for an effect of the forbidden sign (in the model's units; "
+            "the learnt model overstates what it stands for):",
+            "",
+        ]
+        lines += [f"- {label}: {named}" for label, named in asks]
     lines += ["", "Effect-free data (negative control):", ""]
     for scene in scenes:
         for frames in sorted({_frames(n) for n in negatives if n["scene"] == scene}):
