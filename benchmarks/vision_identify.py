@@ -113,6 +113,11 @@ def _frames(row: dict) -> int:
     return row.get("frames", PAPER_FRAMES)  # rows from before --frames: the paper's
 
 
+def _length(row: dict) -> str:
+    """How a row's runs differ from the paper's, for its label ("" for the paper's length)."""
+    return "" if _frames(row) == PAPER_FRAMES else f", runs of {_frames(row)} frames"
+
+
 def _relative(directory) -> str:
     path = pathlib.Path(directory).resolve()
     return str(path.relative_to(ROOT) if path.is_relative_to(ROOT) else path)
@@ -256,16 +261,13 @@ def main() -> None:
                 vpt += f" -> {images['refined']['vpt']['mean']:.3f} (image refit)"
                 mse += f" -> {images['refined']['mse']:.2e} (image refit)"
         outcome = row["outcome"] + (f" ({'; '.join(row['adequacy'])})" if row.get("adequacy") else "")
-        frames = _frames(row)
-        length = f", runs of {frames} frames" if frames != PAPER_FRAMES else ""
         lines.append(
-            f"| {row['scene']} | {row['attribute']} {row['truth']} at {row['joint']}{length} | {outcome} "
-            f"| {found} | {value} | {vpt} | {mse} |"
+            f"| {row['scene']} | {row['attribute']} {row['truth']} at {row['joint']}{_length(row)} "
+            f"| {outcome} | {found} | {value} | {vpt} | {mse} |"
         )
     # what identify names when the residual asks for an effect of the forbidden sign: the model's own error
-    length = lambda r: "" if _frames(r) == PAPER_FRAMES else f", runs of {_frames(r)} frames"  # noqa: E731
-    labels = [f"{r['scene']}, {r['attribute']} {r['truth']} at {r['joint']}{length(r)}" for r in rows]
-    labels += [f"{n['scene']}, effect-free, seed {n['seed']}{length(n)}" for n in negatives]
+    labels = [f"{r['scene']}, {r['attribute']} {r['truth']} at {r['joint']}{_length(r)}" for r in rows]
+    labels += [f"{n['scene']}, effect-free, seed {n['seed']}{_length(n)}" for n in negatives]
     asks = [
         (f"{label} ({warning.split(':', 1)[0]})", warning.split("asks for ", 1)[1].split(": a sign", 1)[0])
         for label, row in zip(labels, rows + negatives)
