@@ -6,7 +6,8 @@ Effects injected one at a time into the KeyCLD pendulum, cart-pole and acrobot M
 for damping, two effects at once, and effect-free data (10 seeds). Then dm_control's stock cart-poles,
 rail limits active, recorded at their own 10 ms with 1 mm noise: the one-pole scene as it is (nothing to
 find), and the two-pole scene (`cartpole/two_poles`) with damping injected on its second hinge. The
-protocol and the cases are those of the tests (imported from tests/test_identify_mujoco.py).
+protocol and the cases are those of the tests (imported from tests/test_identify_mujoco.py, whose
+`CASES` are all run here; the tests run 10 of the 14).
 
 Writes benchmarks/results/identify_keycld.json and identify_keycld.md; prints the JSON.
 

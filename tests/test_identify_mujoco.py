@@ -5,7 +5,8 @@ effect) does not declare: each injected effect must be the top detection at the 
 actuator, its value within 15% (30% for friction), and the held-out rollout error must drop at least
 5x. Also: nothing detected on effect-free data in 9 of 10 seeds, two effects at once, damping through
 1 mm noise, a learned nominal model, and dm_control's stock cart-poles with their rail limits.
-benchmarks/identify_keycld.py prints the same cases as a table.
+benchmarks/identify_keycld.py runs every case of `CASES` as a table; the tests run 10 of its 14
+(`TESTED`).
 """
 
 import jax
@@ -126,6 +127,20 @@ CASES = [
 ]
 
 
+# The cases the tests run (issue 6 asks for at least 10): every effect, every scene with three or more
+# effects, hinges and the slider. The other four put an effect on a hinge where another case has it
+# on a hinge already (damping, Coulomb friction, spring, armature) and run in
+# benchmarks/identify_keycld.py only: each case compiles its own augmented model, 15-25 s of the
+# suite's 15 minutes on 2 cores.
+UNTESTED = {
+    ("keycld/pendulum", "joint_coulomb", "hinge"),
+    ("keycld/pendulum", "joint_spring", "hinge"),
+    ("keycld/cartpole", "joint_damping", "hinge_1"),
+    ("keycld/acrobot", "joint_armature", "elbow"),
+}
+TESTED = [c for c in CASES if c[:3] not in UNTESTED]
+
+
 def _check(result, effect, where, truth, rtol):
     assert result.detected, f"nothing detected; rejected: {[d.candidate.label for d in result.rejected]}"
     top = result.detected[0]
@@ -135,18 +150,11 @@ def _check(result, effect, where, truth, rtol):
     assert drop >= MIN_ROLLOUT_DROP, f"rollout error {result.before} -> {result.after}"
 
 
-def _group(scene):
-    """One pytest-xdist group per scene (`make test` runs `--dist loadgroup`): its tests share the
-    nominal model's compilations, and the models with one damping (the noise test, two effects at
-    once) share those of the matrix."""
-    return pytest.mark.xdist_group(scene.replace("/", "-"))
-
-
 @pytest.mark.slow
 @pytest.mark.parametrize(
     "scene, effect, where, change, truth",
-    [pytest.param(*c, marks=_group(c[0])) for c in CASES],
-    ids=[f"{c[0].split('/')[1]}-{c[1]}-{c[2]}" for c in CASES],
+    TESTED,
+    ids=[f"{c[0].split('/')[1]}-{c[1]}-{c[2]}" for c in TESTED],
 )
 def test_injected_effect_is_found(scene, effect, where, change, truth):
     # dm_control's MJCF compiles angles in degrees: springref is given in degrees, reported in radians
@@ -159,7 +167,6 @@ def test_injected_effect_is_found(scene, effect, where, change, truth):
 
 
 @pytest.mark.slow
-@_group("keycld/acrobot")
 def test_nothing_is_found_in_effect_free_data():
     found = []
     for seed in range(10):
@@ -169,7 +176,6 @@ def test_nothing_is_found_in_effect_free_data():
 
 
 @pytest.mark.slow
-@_group("keycld/acrobot")
 def test_two_effects_at_once_are_both_found():
     change = dict(joints={"elbow": {"damping": 0.1}, "shoulder": {"stiffness": 10.0, "springref": 20}})
     result = _identify("keycld/acrobot", change, 7, near=("shoulder", np.radians(20)))
@@ -182,14 +188,7 @@ def test_two_effects_at_once_are_both_found():
 @pytest.mark.slow
 @pytest.mark.parametrize(
     "scene, where, damping",
-    [
-        pytest.param(scene, where, damping, marks=_group(scene))
-        for scene, where, damping in [
-            ("keycld/pendulum", "hinge", 0.1),
-            ("keycld/cartpole", "slider", 1.0),
-            ("keycld/acrobot", "elbow", 0.1),
-        ]
-    ],
+    [("keycld/pendulum", "hinge", 0.1), ("keycld/cartpole", "slider", 1.0), ("keycld/acrobot", "elbow", 0.1)],
 )
 def test_damping_is_found_through_1mm_noise(scene, where, damping):
     result = _identify(scene, dict(joints={where: {"damping": damping}}), 31, noise=1e-3)

@@ -258,8 +258,7 @@ def _assert_bitwise_equal(a, b):
         np.testing.assert_array_equal(np.asarray(x), np.asarray(y))
 
 
-# the tests that share this fixture form one xdist group (`make test` runs `--dist loadgroup`), so the
-# training runs once, on one worker
+# `make test` runs a module's tests on one worker (`--dist loadfile`): the training runs once
 @pytest.fixture(scope="module")
 def trained(tmp_path_factory):
     frames, controls, angles = pendulum_frames(RUNS, SAMPLES)
@@ -270,7 +269,6 @@ def trained(tmp_path_factory):
     return model, data, angles, result, out
 
 
-@pytest.mark.xdist_group("trained")
 def test_training_lowers_reconstruction_and_dynamics_losses(trained):
     model, data, angles, result, _ = trained
     assert set(result.stages) == {"autoencoder", "dynamics", "joint", "refit"}
@@ -313,7 +311,6 @@ class _KillAt(cldyn.AbstractProgressMeter):
 
 
 @pytest.mark.slow
-@pytest.mark.xdist_group("trained")
 def test_interrupted_training_resumes_bitwise(trained, tmp_path, step_compilations):
     _, data, _, whole, _ = trained
     model = _model(jax.random.key(0))
@@ -331,7 +328,6 @@ def test_interrupted_training_resumes_bitwise(trained, tmp_path, step_compilatio
     assert step_compilations == []
 
 
-@pytest.mark.xdist_group("trained")
 def test_load_model_rebuilds_the_model_after_every_stage(trained, tmp_path):
     _, _, _, result, out = trained
     spec = {"keypoints": 1, "width": WIDTH, "image_size": SIZE, "schedule": SCHEDULE.describe(),
@@ -369,7 +365,6 @@ def test_model_from_spec_builds_the_networks_it_names():
         keyvision.model_from_spec(spec | {"networks": "cnn"}, key=jax.random.key(0))
 
 
-@pytest.mark.xdist_group("trained")
 def test_load_model_restores_the_keypoint_order_of_stage_b(tmp_path):
     """Two keypoints that stage (b) renumbered: the networks of stage (a), permuted, with stage (b)'s
     dynamics."""
@@ -396,7 +391,6 @@ def test_load_model_restores_the_keypoint_order_of_stage_b(tmp_path):
     _assert_bitwise_equal(keyvision.load_model(tmp_path, stage="autoencoder")[0], model)
 
 
-@pytest.mark.xdist_group("trained")
 def test_predict_starts_from_the_reconstruction_and_scores_a_vpt(trained):
     _, data, _, result, _ = trained
     # float64: cldyn.rollout saves at float64 times when JAX's 64-bit mode is on (as in the tests)
