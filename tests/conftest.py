@@ -53,30 +53,9 @@ def step_compilations():
     jax.monitoring.unregister_event_duration_listener(listen)
 
 
-# The modules that take longest (seconds of a full run on 2 cores, 2026-11-26: 473, 195, 168, 150,
-# 134, 94, 72, 64), longest first
-LONGEST = (
-    "test_identify_mujoco",
-    "test_keyvision_model",
-    "test_identify",
-    "test_integrate",
-    "test_keyvision_cli",
-    "test_mujoco_bridge",
-    "test_system",
-    "test_loss",
-)
-
-
 def pytest_collection_modifyitems(config, items):
-    """The longest modules first, then the other modules with slow tests, then the rest: `make test`
-    hands whole modules to the two workers in this order (`--dist loadfile --no-loadscope-reorder`),
-    and the short ones even out the end of the run instead of one long module keeping a worker busy
-    after the other has finished. A module's tests stay together, so its module-scoped fixtures are
-    built and its models compiled once."""
+    """Modules with slow tests first, a module's tests together (`pytest -n 2` without `make test`'s
+    `--dist loadfile` then shares the long tests between the workers, and the short ones even out
+    the end of the run). `make test` hands whole modules to the workers, most tests first."""
     slow = {item.module.__name__ for item in items if item.get_closest_marker("slow") is not None}
-
-    def rank(item):
-        name = item.module.__name__
-        return LONGEST.index(name) if name in LONGEST else len(LONGEST) + (name not in slow)
-
-    items.sort(key=rank)
+    items.sort(key=lambda item: item.module.__name__ not in slow)
