@@ -21,10 +21,10 @@ lint: $(STAMP)
 	$(BIN)/ruff check cldyn keyvision tests benchmarks examples docs
 
 # --dist loadfile: a module's tests run on one worker, so what they compile in common (a scene's
-# nominal model, a fixture's training) is compiled once, not on both workers (936 s against 982 s with
-# tests spread one by one, 2026-11-26; the modules longest first instead of xdist's order, most tests
-# first, took 1012 and 1051 s). A worker that crashes ends the run: the replacement xdist starts is
-# never given the lost tests, and the run would hang until CI's limit.
+# nominal model, a fixture's training) is compiled once, not on both workers (the tests' durations
+# summed to 1808 s against 1909 s with tests spread one by one, 2026-11-26; wall times of one tree
+# differ here by up to 7% from run to run). A worker that crashes ends the run: the replacement xdist
+# starts is never given the lost tests, and the run would hang until CI's limit.
 test: lint
 	$(BIN)/python -m pytest -q -n 2 --dist loadfile --max-worker-restart 0
 
