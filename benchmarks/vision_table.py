@@ -264,6 +264,22 @@ def _finished(model: pathlib.Path) -> bool:
     return trained and evaluation.is_file()
 
 
+def _seed_counts(scenes: dict) -> str:
+    """How many seeds each row holds, scene by scene ("KeyCLD 3 (acrobot), 1 (pendulum, cartpole); ...")."""
+    said = []
+    for name in ["KeyCLD", *VARIANTS]:
+        counts: dict[int, list[str]] = {}
+        for scene, rows in scenes.items():
+            if name in rows:
+                counts.setdefault(len(rows[name]["seed_means"]), []).append(scene)
+        if len(counts) == 1:  # the same number on every scene that has the row
+            said.append(f"{name} {next(iter(counts))}")
+        elif counts:
+            parts = [f"{n} ({', '.join(where)})" for n, where in sorted(counts.items(), reverse=True)]
+            said.append(f"{name} {', '.join(parts)}")
+    return "; ".join(said)
+
+
 def _write(scenes: dict, args, device: str, seconds: float) -> None:
     """benchmarks/results/vision_table.{json,md} from the rows of the scenes done."""
     result = {
@@ -287,7 +303,8 @@ def _write(scenes: dict, args, device: str, seconds: float) -> None:
         "# The paper's ablation study from images (Table 1)",
         "",
         f"VPT over the {runs} validation runs, mean +- std (median); the paper's value in brackets; - where "
-        f"not run yet. KeyCLD: {args.seeds} seed(s), runs pooled; ablations: {args.ablation_seeds} seed(s). "
+        f"not run yet. Seeds: {_seed_counts(scenes)}; a row of several seeds pools their runs, and its "
+        "seeds' own means follow it. "
         f"Recipe: `{' '.join(str(o) for o in recipe_options(args))}` on {device} "
         f"({result['machine']['cpus']} CPUs); training time per model in the second table (an ablation "
         "that starts from KeyCLD's autoencoder stage counts that stage's time).",
@@ -303,6 +320,8 @@ def _write(scenes: dict, args, device: str, seconds: float) -> None:
             cell = "-" if row is None else f"{row['mean']:.2f} +- {row['std']:.2f} ({row['median']:.2f})"
             if row is not None and row.get("stopped"):  # a training that diverged: see the notes
                 cell += " *"
+            if row is not None and len(row["seed_means"]) > 1:
+                cell += "; seeds " + " / ".join(f"{m:.2f}" for m in row["seed_means"])
             cells.append(cell + ("" if paper is None else f" [{paper:.2f}]"))
         lines.append(f"| {name} | " + " | ".join(cells) + " |")
     lines += ["", "| model | " + " | ".join(scenes) + " |", "| --- |" + " --- |" * len(scenes)]
