@@ -11,7 +11,11 @@ by `keyvision train` with the same recipe (`benchmarks/vision.py`'s options) and
 - FC: KeyCLD's dynamics with the FC estimator and renderer (`--networks fc`, its own autoencoder).
 
 Every step is skipped when its output exists (a finished training is reused, an interrupted one
-resumed), so the budget can be spread over several calls. Writes benchmarks/results/vision_table.{json,md}
+resumed), so the budget can be spread over several calls. `--jobs N` runs N trainings at once, each a
+`keyvision train` process of its own (an ablation waits for the autoencoder stage it starts from): on a
+GPU, small models leave most of it idle, and several trainings share it well (on 2 CPU cores, keep 1).
+Each model trained here records `device.json`: the device, how many trainings ran at once, the wall
+time of its training process. Writes benchmarks/results/vision_table.{json,md}
 (the paper's Table 1 layout: VPT mean +- std over the validation runs and the median, KeyCLD's seeds
 pooled, the paper's values beside), vision_table_mse_<scene>.png (Fig. 3: MSE over time, quartile
 bands, the threshold dashed) and vision_table_frames_<scene>.png (Figs. 4, 13-15: every fourth frame of
@@ -20,6 +24,7 @@ one validation run, true and as each model predicts it); prints the JSON.
     python benchmarks/vision_table.py --scenes pendulum --rounds 1   # the CPU budget of the table
     python benchmarks/vision_table.py --scenes pendulum --models KeyCLD NODE2   # some rows only
     python benchmarks/vision_table.py --report     # the table of what has finished, training nothing
+    python benchmarks/vision_table.py --seeds 3 --ablation-seeds 3 --jobs 6   # on one GPU
 """
 
 import argparse
@@ -28,6 +33,8 @@ import io
 import json
 import os
 import pathlib
+import signal
+import subprocess
 import sys
 import time
 
@@ -94,32 +101,107 @@ def _stopped(model: pathlib.Path) -> dict | None:
     return json.loads(stopped.read_text()) if stopped.is_file() else None
 
 
-def _train_and_evaluate(model: pathlib.Path, data: pathlib.Path, options: list) -> dict:
+def _trained(model: pathlib.Path) -> bool:
+    """Whether a training is over: finished, or stopped before its end (`stopped.json`)."""
+    return (model / "model.eqx").is_file() or (model / "stopped.json").is_file()
+
+
+def _train_arguments(model: pathlib.Path, data: pathlib.Path, options: list) -> list:
+    resume = ["--resume"] if (model / "keyvision.json").is_file() else []
+    return ["train", "--data", data, "--out", model, *options, *resume, "--no-progress"]
+
+
+def _record_stop(model: pathlib.Path, said: str, error) -> bool:
+    """After a failed training: `stopped.json` when a stage had finished (so that later calls do not
+    train it again, and that stage's model is evaluated in its place); False when none had."""
+    stage = _last_stage(model)
+    if stage is None:
+        return False
+    errors = [line for line in said.splitlines() if "error:" in line]
+    note = {"error": errors[-1] if errors else str(error), "evaluated_stage": stage}
+    (model / "stopped.json").write_text(json.dumps(note, indent=1) + "\n")
+    print(f"{model}: the training stopped ({error}); evaluating its {stage} stage", flush=True)
+    return True
+
+
+def _record_device(model: pathlib.Path, device: str, jobs: int, seconds: float) -> None:
+    record = {"device": device, "concurrent_trainings": jobs, "wall_seconds": round(seconds, 1)}
+    (model / "device.json").write_text(json.dumps(record, indent=1) + "\n")
+
+
+def _train_and_evaluate(model: pathlib.Path, data: pathlib.Path, options: list, device: str) -> dict:
     """Train (or resume) and evaluate one model. A training that stops (a diverging stage) is a result
     too: recorded in `stopped.json` (so that later calls do not train it again) and the model of its
     last finished stage is evaluated in its place."""
-    stopped = model / "stopped.json"
-    if not (model / "model.eqx").is_file() and not stopped.is_file():
-        resume = ["--resume"] if (model / "keyvision.json").is_file() else []
+    if not _trained(model):
         errors = _Tee(sys.stderr)
+        started = time.perf_counter()
         try:
             with contextlib.redirect_stderr(errors):
-                _cli("train", "--data", data, "--out", model, *options, *resume, "--no-progress")
+                _cli(*_train_arguments(model, data, options))
         except SystemExit as error:
-            stage = _last_stage(model)
-            if stage is None:
+            if not _record_stop(model, errors.getvalue(), error):
                 raise
-            said = [line for line in errors.getvalue().splitlines() if "error:" in line]
-            note = {"error": said[-1] if said else str(error), "evaluated_stage": stage}
-            stopped.write_text(json.dumps(note, indent=1) + "\n")
-            print(f"{model}: the training stopped ({error}); evaluating its {stage} stage", flush=True)
+        _record_device(model, device, 1, time.perf_counter() - started)
     note = _stopped(model)
     stage = ["--stage", note["evaluated_stage"]] if note else []
     evaluation = model.parent / f"{model.name}-evaluate"
     if not (evaluation / "vpt.json").is_file():
         _cli("evaluate", "--model", model, *stage, "--data", data, "--out", evaluation, "--overwrite")
     vpt = json.loads((evaluation / "vpt.json").read_text())
-    return {"model": str(model), "seconds": round(_seconds(model), 1), "stopped": note, **vpt}
+    trained_on = model / "device.json"
+    on = json.loads(trained_on.read_text()) if trained_on.is_file() else None
+    return {
+        "model": str(model),
+        "seconds": round(_seconds(model), 1),
+        "trained_on": on,
+        "stopped": note,
+        **vpt,
+    }
+
+
+def _ready(training: tuple) -> bool:
+    """Whether the autoencoder stage that a training starts from (if any) is over."""
+    source = training[3]
+    return source is None or _trained(source) or (source / "model-dynamics.eqx").is_file()
+
+
+def _train_concurrently(trainings: list, jobs: int, device: str) -> None:
+    """Run `trainings` (model, data, options, the model whose autoencoder it starts from or None) as up
+    to `jobs` `keyvision train` processes at once, each writing `<model>-train.log`; a training that
+    starts from another's autoencoder waits until that stage is over. A training that fails with no
+    stage finished interrupts the others (each keeps its checkpoints) and ends the call."""
+    pending = [t for t in trainings if not _trained(t[0])]
+    running: dict = {}
+    try:
+        while pending or running:
+            for training in [t for t in pending if _ready(t)][: jobs - len(running)]:
+                model, data, options, _ = training
+                log = model.parent / f"{model.name}-train.log"
+                command = [sys.executable, "-m", "keyvision"]
+                command += [str(a) for a in _train_arguments(model, data, options)]
+                with log.open("w") as stream:
+                    process = subprocess.Popen(command, stdout=stream, stderr=subprocess.STDOUT)
+                running[model] = (process, log, time.perf_counter())
+                pending.remove(training)
+                print(f"training {model} ({len(running)} at once; log {log})", flush=True)
+            for model, (process, log, started) in list(running.items()):
+                if process.poll() is None:
+                    continue
+                del running[model]
+                seconds, status = time.perf_counter() - started, process.returncode
+                if status != 0 and not _record_stop(model, log.read_text(), f"status {status}"):
+                    raise SystemExit(f"keyvision train failed for {model} (status {status}): see {log}")
+                _record_device(model, device, jobs, seconds)
+                print(f"trained {model} in {seconds / 60:.1f} min", flush=True)
+            if pending and not running and not any(_ready(t) for t in pending):
+                raise SystemExit("vision_table: trainings wait for an autoencoder that no training makes")
+            time.sleep(1)
+    finally:
+        for process, _, _ in running.values():
+            process.send_signal(signal.SIGINT)  # `keyvision train` checkpoints and stops
+        for process, _, _ in running.values():
+            process.wait()
 
 
 def _summary(evaluations: list[dict]) -> dict:
@@ -132,6 +214,7 @@ def _summary(evaluations: list[dict]) -> dict:
         "stopped": [e["stopped"] for e in evaluations if e.get("stopped")],
         "runs": evaluations[0]["runs"],
         "seconds": [e["seconds"] for e in evaluations],
+        "trained_on": [e.get("trained_on") for e in evaluations],
         "mse_per_run": np.concatenate([np.asarray(e["mse_per_run"]) for e in evaluations]).tolist(),
         "threshold": evaluations[0]["threshold"],
         "dt": evaluations[0]["dt"],
@@ -216,46 +299,78 @@ def main() -> None:
         action="store_true",
         help="train nothing: the table and figures of the models already finished",
     )
+    parser.add_argument(
+        "--jobs",
+        type=int,
+        default=1,
+        help="trainings at once, each its own process (several share a GPU well; 1 on 2 CPU cores)",
+    )
     add_recipe(parser, rounds=1)
     args = parser.parse_args()
+    if args.jobs < 1:
+        parser.error(f"--jobs {args.jobs}: give at least 1")
     import jax
 
     started = time.perf_counter()
-    scenes = {}
+    first = jax.devices()[0]
+    device = str(first) if first.platform == "cpu" else f"{first} ({first.device_kind})"
+    plans = {}
     for scene in args.scenes:
         out = pathlib.Path(args.out) / scene
-        data = out / "data"
-        if not (data / "frames.npz").is_file():
+        if not (out / "data" / "frames.npz").is_file():
             if args.report:
                 continue
-            _cli("render", "--scene", f"keycld/{scene}", "--out", data, "--runs", args.runs)
-        recipe = recipe_options(args)
+            _cli("render", "--scene", f"keycld/{scene}", "--out", out / "data", "--runs", args.runs)
+        plans[scene] = _plan(args, out)
+    if args.jobs > 1 and not args.report:
+        trainings = [
+            (model, pathlib.Path(args.out) / scene / "data", options, source)
+            for scene, plan in plans.items()
+            for row in plan.values()
+            for model, options, source in row
+        ]
+        _train_concurrently(trainings, args.jobs, device)
+    scenes = {}
+    for scene, plan in plans.items():
+        data = pathlib.Path(args.out) / scene / "data"
         rows, models = {}, {}
-        plan = {
-            "KeyCLD": ([], False, args.seeds),
-            **{name: (*variant, args.ablation_seeds) for name, variant in VARIANTS.items()},
-        }
-        order = ["KeyCLD", *(name for name in args.models if name != "KeyCLD")]
-        for name in order:
-            options, shared, seeds = plan[name]
-            if name == "KeyCLD" and "KeyCLD" not in args.models:
-                seeds = min(seeds, 1)  # its first seed, from whose autoencoder the ablations but FC start
-            slug = "keycld" if name == "KeyCLD" else name.lower().replace(" ", "-")
-            share = ["--networks-from", out / "keycld-0"] if shared else []
+        for name, row in plan.items():
             runs = [
-                _train_and_evaluate(out / f"{slug}-{s}", data, [*recipe, *options, *share, "--seed", s])
-                for s in range(seeds)
-                if not args.report or _finished(out / f"{slug}-{s}")
+                _train_and_evaluate(model, data, options, device)
+                for model, options, _ in row
+                if not args.report or _finished(model)
             ]
             if runs:
-                rows[name], models[name] = _summary(runs), out / f"{slug}-0"
+                rows[name], models[name] = _summary(runs), row[0][0]
         if not rows:
             continue
         _plot_mse(RESULTS / f"vision_table_mse_{scene}.png", scene, rows)
         _plot_frames(RESULTS / f"vision_table_frames_{scene}.png", data, models)
         scenes[scene] = rows
         # written after every scene: a call cut short leaves the table of the scenes it finished
-        _write(scenes, args, str(jax.devices()[0]), time.perf_counter() - started)
+        _write(scenes, args, device, time.perf_counter() - started)
+
+
+def _plan(args, out: pathlib.Path) -> dict:
+    """A scene's rows, in training order: name -> [(model directory, `keyvision train` options, the
+    model whose autoencoder it starts from or None), one per seed]."""
+    recipe = recipe_options(args)
+    plan = {
+        "KeyCLD": ([], False, args.seeds),
+        **{name: (*variant, args.ablation_seeds) for name, variant in VARIANTS.items()},
+    }
+    rows = {}
+    for name in ["KeyCLD", *(name for name in args.models if name != "KeyCLD")]:
+        options, shared, seeds = plan[name]
+        if name == "KeyCLD" and "KeyCLD" not in args.models:
+            seeds = min(seeds, 1)  # its first seed, from whose autoencoder the ablations but FC start
+        slug = "keycld" if name == "KeyCLD" else name.lower().replace(" ", "-")
+        source = out / "keycld-0" if shared else None
+        share = ["--networks-from", source] if shared else []
+        rows[name] = [
+            (out / f"{slug}-{s}", [*recipe, *options, *share, "--seed", s], source) for s in range(seeds)
+        ]
+    return rows
 
 
 def _finished(model: pathlib.Path) -> bool:
@@ -325,12 +440,33 @@ def _write(scenes: dict, args, device: str, seconds: float) -> None:
             cells.append(cell + ("" if paper is None else f" [{paper:.2f}]"))
         lines.append(f"| {name} | " + " | ".join(cells) + " |")
     lines += ["", "| model | " + " | ".join(scenes) + " |", "| --- |" + " --- |" * len(scenes)]
+    elsewhere = set()  # (device, trainings at once) of the models trained on an accelerator
     for name in names:
-        cells = [
-            " / ".join(f"{s / 60:.0f} min" for s in rows[name]["seconds"]) if name in rows else "-"
-            for rows in scenes.values()
-        ]
+        cells = []
+        for rows in scenes.values():
+            if name not in rows:
+                cells.append("-")
+                continue
+            said = []
+            for seconds, on in zip(rows[name]["seconds"], rows[name].get("trained_on") or []):
+                if on and not on["device"].lower().startswith("cpu"):
+                    elsewhere.add((on["device"], on["concurrent_trainings"]))
+                    said.append(f"{on['wall_seconds'] / 60:.1f} min †")
+                else:
+                    said.append(f"{seconds / 60:.0f} min")
+            cells.append(" / ".join(said))
         lines.append(f"| {name} | " + " | ".join(cells) + " |")
+    if elsewhere:
+        kinds: dict[str, set] = {}
+        for device, jobs in elsewhere:
+            kinds.setdefault(device, set()).add(str(jobs))
+        where = "; ".join(f"{d}, {' or '.join(sorted(j))} trainings at once" for d, j in kinds.items())
+        lines += [
+            "",
+            f"† Trained on {where}, each its own `keyvision train` process: the wall time of that "
+            "process, compilation included, while the others shared the device; an ablation that "
+            "starts from KeyCLD's autoencoder does not count that stage here.",
+        ]
     stops = [
         f"- {name}, {scene}: {stop['error']}; the model after its `{stop['evaluated_stage']}` stage is "
         "evaluated in its place."
