@@ -211,7 +211,7 @@ def _summary(evaluations: list[dict]) -> dict:
         "std": float(per_run.std()),
         "median": float(np.median(per_run)),
         "seed_means": [e["vpt"]["mean"] for e in evaluations],
-        "stopped": [e["stopped"] for e in evaluations if e.get("stopped")],
+        "stopped": [{**e["stopped"], "model": e["model"]} for e in evaluations if e.get("stopped")],
         "runs": evaluations[0]["runs"],
         "seconds": [e["seconds"] for e in evaluations],
         "trained_on": [e.get("trained_on") for e in evaluations],
@@ -395,6 +395,12 @@ def _seed_counts(scenes: dict) -> str:
     return "; ".join(said)
 
 
+def _seed_of(stop: dict) -> str:
+    """ ", seed N" for a stopped training whose model directory is known (`<slug>-<N>`), else ""."""
+    seed = pathlib.Path(stop.get("model", "")).name.rpartition("-")[2]
+    return f", seed {seed}" if seed.isdigit() else ""
+
+
 def _write(scenes: dict, args, device: str, seconds: float) -> None:
     """benchmarks/results/vision_table.{json,md} from the rows of the scenes done."""
     result = {
@@ -448,12 +454,13 @@ def _write(scenes: dict, args, device: str, seconds: float) -> None:
                 cells.append("-")
                 continue
             said = []
-            for seconds, on in zip(rows[name]["seconds"], rows[name].get("trained_on") or []):
+            times = rows[name]["seconds"]
+            for took, on in zip(times, rows[name].get("trained_on") or [None] * len(times)):
                 if on and not on["device"].lower().startswith("cpu"):
                     elsewhere.add((on["device"], on["concurrent_trainings"]))
                     said.append(f"{on['wall_seconds'] / 60:.1f} min †")
                 else:
-                    said.append(f"{seconds / 60:.0f} min")
+                    said.append(f"{took / 60:.0f} min")
             cells.append(" / ".join(said))
         lines.append(f"| {name} | " + " | ".join(cells) + " |")
     if elsewhere:
@@ -468,8 +475,8 @@ def _write(scenes: dict, args, device: str, seconds: float) -> None:
             "starts from KeyCLD's autoencoder does not count that stage here.",
         ]
     stops = [
-        f"- {name}, {scene}: {stop['error']}; the model after its `{stop['evaluated_stage']}` stage is "
-        "evaluated in its place."
+        f"- {name}, {scene}{_seed_of(stop)}: {stop['error']}; the model after its "
+        f"`{stop['evaluated_stage']}` stage is evaluated in its place."
         for scene, rows in scenes.items()
         for name, row in rows.items()
         for stop in row.get("stopped") or []
