@@ -323,12 +323,7 @@ def main() -> None:
             _cli("render", "--scene", f"keycld/{scene}", "--out", out / "data", "--runs", args.runs)
         plans[scene] = _plan(args, out)
     if args.jobs > 1 and not args.report:
-        trainings = [
-            (model, pathlib.Path(args.out) / scene / "data", options, source)
-            for scene, plan in plans.items()
-            for row in plan.values()
-            for model, options, source in row
-        ]
+        trainings = [training for plan in plans.values() for row in plan.values() for training in row]
         _train_concurrently(trainings, args.jobs, device)
     scenes = {}
     for scene, plan in plans.items():
@@ -337,7 +332,7 @@ def main() -> None:
         for name, row in plan.items():
             runs = [
                 _train_and_evaluate(model, data, options, device)
-                for model, options, _ in row
+                for model, _, options, _ in row
                 if not args.report or _finished(model)
             ]
             if runs:
@@ -352,8 +347,8 @@ def main() -> None:
 
 
 def _plan(args, out: pathlib.Path) -> dict:
-    """A scene's rows, in training order: name -> [(model directory, `keyvision train` options, the
-    model whose autoencoder it starts from or None), one per seed]."""
+    """A scene's rows, in training order: name -> [(model directory, data directory, `keyvision train`
+    options, the model whose autoencoder it starts from or None), one per seed]."""
     recipe = recipe_options(args)
     plan = {
         "KeyCLD": ([], False, args.seeds),
@@ -368,15 +363,14 @@ def _plan(args, out: pathlib.Path) -> dict:
         source = out / "keycld-0" if shared else None
         share = ["--networks-from", source] if shared else []
         rows[name] = [
-            (out / f"{slug}-{s}", [*recipe, *options, *share, "--seed", s], source) for s in range(seeds)
+            (out / f"{slug}-{s}", out / "data", [*recipe, *options, *share, "--seed", s], source)
+            for s in range(seeds)
         ]
     return rows
 
 
 def _finished(model: pathlib.Path) -> bool:
-    evaluation = model.parent / f"{model.name}-evaluate" / "vpt.json"
-    trained = (model / "model.eqx").is_file() or (model / "stopped.json").is_file()
-    return trained and evaluation.is_file()
+    return _trained(model) and (model.parent / f"{model.name}-evaluate" / "vpt.json").is_file()
 
 
 def _seed_counts(scenes: dict) -> str:
