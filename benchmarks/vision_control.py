@@ -14,11 +14,14 @@ Writes benchmarks/results/vision_control.json and .md, and vision_control_<scene
     python benchmarks/vision_control.py --model cartpole=runs/cartpole-model --runs 20
     python benchmarks/vision_control.py --metric mass     # gains as rates (cldyn.EnergyShaping)
     python benchmarks/vision_control.py --report          # the table again from the saved rows
+    python benchmarks/vision_control.py --model acrobot=DIR --linearise   # the true loop at the target only
 
 `--metric mass` weighs the shaped potential and the damping by the learnt mass matrix: a Lagrangian
 learnt from images has an arbitrary scale, and eq. 32's gains act differently at each; with the mass
 metric every mode near the target obeys e'' + kd e' + kp e = 0 whatever the scale. Rows of both metrics
-are kept side by side. The learnt closed loop's slowest mode at the target is reported per model.
+are kept side by side. The learnt closed loop's slowest mode at the target is reported per model, and
+the true one's (the learnt controller on MuJoCo's dynamics linearised at upright): whether the target
+can be held at all.
 """
 
 import argparse
@@ -114,18 +117,31 @@ def _write(rows: list) -> None:
         "(`cldyn.EnergyShaping(metric=)`). Slowest mode: the learnt closed loop linearised at the target on "
         "the learnt constraints' tangent space, the eigenvalue that decays slowest (rate in 1/s, damping "
         "ratio); with the true model and "
-        "the mass metric it is -1 +- 2j (rate 1, ratio 0.45).",
+        "the mass metric it is -1 +- 2j (rate 1, ratio 0.45). True loop at the target: the learnt "
+        "controller (from the state) on MuJoCo's dynamics, linearised at upright "
+        "(`keyvision.target_linearisation`): the largest real part of its eigenvalues, in 1/s; positive, "
+        "the target is unstable in truth and no run can hold it. Tolerance: kp over the scene's fastest "
+        "gravity rate at upright (the largest eigenvalue of M^-1 G): by how much a learnt potential's "
+        "curvature there may be wrong before kp = 5 cannot hold it (mass metric, exact masses).",
         "",
         "| scene | metric | sees | success | median final error (m) | median time to 0.05 m (s) | "
-        "slowest mode: rate (1/s), ratio | loop steps/s | controller frames/s | real time |",
-        "| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |",
+        "slowest mode: rate (1/s), ratio | true loop at the target (1/s) | tolerance | loop steps/s | "
+        "controller frames/s | real time |",
+        "| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |",
     ]
     for row in rows:
         reached, mode = row["median_time_to_tolerance"], row.get("slowest_mode")
         mode = "-" if mode is None else f"{mode['decay_rate']:.2f}, {mode['damping_ratio']:.2f}"
+        truth = row.get("true_target")
+        truth = (
+            "- | -"
+            if truth is None
+            else f"{truth['largest_real_part']:+.2f} | {truth['curvature_tolerance']:.0%}"
+        )
         lines.append(
             f"| {row['scene']} | {_metric(row)} | {row['observe']} | {row['success_rate']:.0%} | "
             f"{row['median_final_error']:.3f} | {'-' if reached is None else f'{reached:.2f}'} | {mode} | "
+            f"{truth} | "
             f"{row['steps_per_second']:.0f} | {1.0 / row['seconds_per_step']['policy_per_step']:.0f} | "
             f"{row['real_time_rate']:.0f} |"
         )
@@ -148,6 +164,12 @@ def main() -> None:
     parser.add_argument(
         "--report", action="store_true", help="run nothing: rewrite the table from the saved rows"
     )
+    parser.add_argument(
+        "--linearise",
+        action="store_true",
+        help="no swing-ups: the true loop at the target (keyvision.target_linearisation) of each --model, "
+        "added to its saved rows of this --metric",
+    )
     args = parser.parse_args()
     if args.report:
         import json
@@ -159,9 +181,26 @@ def main() -> None:
     from keyvision._cli._demo import model_directory
 
     models = dict(item.split("=", 1) for item in args.model) or {"pendulum": str(model_directory())}
+    if args.linearise:
+        import json
+
+        rows = json.loads((RESULTS / "vision_control.json").read_text())["rows"]
+        for name, directory in models.items():
+            model, _ = keyvision.load_model(directory)
+            truth = keyvision.target_linearisation(model, f"keycld/{name}", metric=args.metric)
+            print(name, directory, args.metric, truth, flush=True)
+            key = (name, directory, args.metric)
+            matched = [r for r in rows if (r["scene"], r["model"], _metric(r)) == key]
+            if not matched:
+                raise SystemExit(f"no saved rows of {name}={directory} with --metric {args.metric}")
+            for row in matched:
+                row["true_target"] = truth
+        _write(rows)
+        return
     new = []
     for name, directory in models.items():
         model, _ = keyvision.load_model(directory)
+        truth = keyvision.target_linearisation(model, f"keycld/{name}", metric=args.metric)
         results = []
         for observe in ("frames", "state"):
             result = keyvision.swing_up(
@@ -184,6 +223,7 @@ def main() -> None:
                     "observe": observe,
                     "metric": args.metric,
                     "slowest_mode": _slowest_mode(model, result["target_keypoints"], args.metric),
+                    "true_target": truth,
                     "runs": args.runs,
                     "duration": args.duration,
                     "success_rate": result["success_rate"],

@@ -11,6 +11,7 @@ from ._control import (
     FramePolicy as FramePolicy,
     image_target as image_target,
     swing_up as swing_up,
+    target_linearisation as target_linearisation,
 )
 from ._data import (
     Frames as Frames,

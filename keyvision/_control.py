@@ -337,16 +337,7 @@ def swing_up(
                     if r < keep_frames:
                         frames.append(frame.copy())
                 else:
-                    # the true state in the image frame: positions through the camera, velocities
-                    # through its local linearisation (a central difference of the map)
-                    velocity = np.zeros_like(true)
-                    for i, point in enumerate(setup.keypoints):
-                        velocity[i] = setup.basis @ _point_velocity(mujoco, physics, data, point)
-                    h = 1e-6
-                    xd = (view.to_image(true + h * velocity) - view.to_image(true - h * velocity)) / (2 * h)
-                    # into the model's keypoint frame (the learnt keypoint need not sit on the true one)
-                    x = calibration[0] @ view.to_image(true).reshape(-1) + calibration[1]
-                    xd = calibration[0] @ xd.reshape(-1)
+                    x, xd = _model_state(mujoco, setup, data, view, calibration)
                     u = np.asarray(
                         _state_step(
                             policy, jnp.asarray(x, policy.target.dtype), jnp.asarray(xd, policy.target.dtype)
@@ -408,6 +399,118 @@ def swing_up(
         },
         "steps_per_second": 1.0 / per_step,
         "real_time_rate": 1.0 / frame_dt,
+    }
+
+
+def _model_state(mujoco, scene, data, view, calibration) -> tuple[np.ndarray, np.ndarray]:
+    """MuJoCo's true state (`data`, after `mj_forward`) as the model's `(x, xd)`: the keypoints'
+    positions through the camera, their velocities through its local linearisation (a central
+    difference of the map), then into the model's keypoint frame by the affine `calibration`."""
+    true = _true_keypoints(scene, data)
+    velocity = np.stack(
+        [scene.basis @ _point_velocity(mujoco, scene.model, data, point) for point in scene.keypoints]
+    )
+    h = 1e-6
+    xd = (view.to_image(true + h * velocity) - view.to_image(true - h * velocity)) / (2 * h)
+    # the learnt keypoint need not sit on the true one
+    return calibration[0] @ view.to_image(true).reshape(-1) + calibration[1], calibration[0] @ xd.reshape(-1)
+
+
+def target_linearisation(
+    model: KeyCLD,
+    scene: "str | os.PathLike" = "keycld/pendulum",
+    *,
+    kp: float = 5.0,
+    kd: float = 2.0,
+    metric: str = "euclidean",
+    camera: str | int = "fixed",
+    step: float = 1e-4,
+    seed: int = 0,
+) -> dict:
+    """The true closed loop at the upright target: MuJoCo's dynamics under the learnt controller,
+    linearised there. Says whether energy shaping on `model` can hold the target at all.
+
+    The controller is `swing_up`'s with `observe="state"` (true keypoints and velocities mapped into
+    the model's keypoint frame by the same affine calibration): near the target the frames' estimate
+    adds noise, not a different map. MuJoCo's joint accelerations under that control are differenced
+    centrally (`step` in joint units) in positions and velocities about the upright posture at rest,
+    giving the closed loop's matrix `[[0, I], [dqacc/dq, dqacc/dqvel]]`; an eigenvalue with a positive
+    real part means the target is unstable in truth, whatever the learnt model predicts. Beside it,
+    the scene's own gravity rates at the target: the eigenvalues of `M^-1 G` (`G` the destabilising
+    stiffness of gravity, `-d qfrc_bias / dq`, `M` the joint mass matrix). With `metric="mass"` and
+    exact masses, the shaped spring holds a learnt potential whose curvature along a mode is wrong
+    by less than `kp / rate` of the truth: the fastest rate sets how exact a learnt potential must be.
+
+    **Arguments:** `model`, `scene`, `kp`, `kd`, `metric` and `camera` as `swing_up`; `step`: the
+    finite-difference step; `seed`: the calibration's random poses.
+
+    **Returns:** a dict: `eigenvalues` (of the true closed loop, complex, as `[real, imag]` pairs
+    sorted by real part, largest first), `largest_real_part` (1/s; positive: unstable),
+    `gravity_rates` (1/s², the eigenvalues of `M^-1 G`, largest first), `curvature_tolerance`
+    (`kp` over the largest rate), `control_at_target` (the learnt controller's command at rest at the
+    true upright posture; zero for an exact model).
+    """
+    mujoco = _mujoco()
+    protocol = RenderProtocol(image_size=model.image_size, shadow_size=_SHADOW_SIZE)
+    setup = _scene(_scene_xml(scene), protocol, camera, None)
+    if len(setup.keypoints) != model.num_keypoints:
+        raise ValueError(
+            f"target_linearisation: {scene} has {len(setup.keypoints)} keypoints, "
+            f"the model {model.num_keypoints}"
+        )
+    physics = setup.model
+    if physics.nq != physics.nv:
+        raise ValueError("target_linearisation: needs a scene of hinges and slides (nq == nv)")
+    view = PlanarCamera(setup.homography, setup.basis)
+    size = model.image_size
+    renderer = mujoco.Renderer(physics, size, size)
+    try:
+        data = mujoco.MjData(physics)
+        _, upright = _postures(mujoco, setup, data, view)
+        data.qpos[:] = upright
+        data.qvel[:] = 0.0
+        mujoco.mj_forward(physics, data)
+        renderer.update_scene(data, camera=setup.camera)
+        frame_dt = float(physics.opt.timestep) * protocol.steps_per_frame
+        policy = FramePolicy(model, renderer.render().copy(), frame_dt, kp=kp, kd=kd, metric=metric)
+        calibration = _calibrate(mujoco, setup, data, renderer, model, view, np.random.default_rng(seed))
+    finally:
+        renderer.close()
+    dtype = policy.target.dtype
+
+    def acceleration(qpos, qvel, control: bool = True):
+        data.qpos[:], data.qvel[:] = qpos, qvel
+        data.ctrl[:] = 0.0
+        mujoco.mj_forward(physics, data)
+        if control:
+            x, xd = _model_state(mujoco, setup, data, view, calibration)
+            data.ctrl[:] = np.asarray(_state_step(policy, jnp.asarray(x, dtype), jnp.asarray(xd, dtype)))
+            mujoco.mj_forward(physics, data)
+        return data.qacc.copy(), data.ctrl.copy()
+
+    n = physics.nv
+    rest = np.zeros(n)
+    stiffness, damping, gravity = (np.zeros((n, n)) for _ in range(3))
+    for j in range(n):
+        e = np.zeros(n)
+        e[j] = step
+        for matrix, ahead, behind, control in (
+            (stiffness, (upright + e, rest), (upright - e, rest), True),
+            (damping, (upright, e), (upright, -e), True),
+            (gravity, (upright + e, rest), (upright - e, rest), False),
+        ):
+            difference = acceleration(*ahead, control)[0] - acceleration(*behind, control)[0]
+            matrix[:, j] = difference / (2 * step)
+    closed = np.block([[np.zeros((n, n)), np.eye(n)], [stiffness, damping]])
+    eigenvalues = sorted(np.linalg.eigvals(closed), key=lambda z: -z.real)
+    # M^-1 G is d qacc / d qpos without control at rest: gravity's rates
+    rates = np.sort(np.linalg.eigvals(gravity).real)[::-1]
+    return {
+        "eigenvalues": [[float(z.real), float(z.imag)] for z in eigenvalues],
+        "largest_real_part": float(eigenvalues[0].real),
+        "gravity_rates": rates.tolist(),
+        "curvature_tolerance": float(kp / rates[0]) if rates[0] > 0 else float("inf"),
+        "control_at_target": acceleration(upright, rest)[1].tolist(),
     }
 
 

@@ -128,6 +128,39 @@ def test_the_state_variant_speaks_the_models_coordinates():
 
 
 @pytest.mark.mujoco
+def test_target_linearisation_without_control_is_the_free_pendulum_at_upright():
+    # no learnt potential and no gains: the controller commands nothing, and MuJoCo's pendulum
+    # linearised at upright is the inverted pendulum, eigenvalues +- sqrt(m g d / I) with d the
+    # distance of the centre of mass from the hinge and I the inertia about the hinge (the body's
+    # principal inertia about the hinge axis plus m d^2, plus the joint's armature)
+    import equinox as eqx
+    import mujoco
+
+    model = eqx.tree_at(lambda m: m.dynamics.potential, _tiny_pendulum(), None)
+    result = keyvision.target_linearisation(model, "keycld/pendulum", kp=0.0, kd=0.0)
+    physics = mujoco.MjModel.from_xml_string(keyvision._render._scene_xml("keycld/pendulum"))
+    (hinge,) = range(physics.njnt)
+    body = physics.jnt_bodyid[hinge]
+    axis = physics.jnt_axis[hinge]
+    offset = physics.body_ipos[body] - physics.jnt_pos[hinge]
+    d = np.linalg.norm(offset - np.dot(offset, axis) * axis)
+    # the body's inertia frame: principal axes rotated by body_iquat; the hinge axis in that frame
+    rotation = np.zeros(9)
+    mujoco.mju_quat2Mat(rotation, physics.body_iquat[body])
+    local = rotation.reshape(3, 3).T @ axis
+    inertia = float(local @ (physics.body_inertia[body] * local))
+    mass = physics.body_mass[body]
+    hinge_inertia = inertia + mass * d**2 + physics.dof_armature[hinge]
+    rate = mass * np.linalg.norm(physics.opt.gravity) * d / hinge_inertia
+    assert result["gravity_rates"] == pytest.approx([rate], rel=1e-4)
+    assert result["largest_real_part"] == pytest.approx(np.sqrt(rate), rel=1e-4)
+    _, (low, imaginary) = result["eigenvalues"]  # largest real part first
+    assert low == pytest.approx(-np.sqrt(rate), rel=1e-4) and imaginary == 0.0
+    assert result["control_at_target"] == pytest.approx([0.0], abs=1e-12)
+    assert result["curvature_tolerance"] == 0.0  # kp = 0 tolerates nothing
+
+
+@pytest.mark.mujoco
 def test_control_command_refuses_a_target_of_the_wrong_size(tmp_path, capsys):
     imageio = pytest.importorskip("imageio.v3")
     target = tmp_path / "target.png"
