@@ -450,6 +450,7 @@ def target_linearisation(
     (`kp` over the largest rate), `control_at_target` (the learnt controller's command at rest at the
     true upright posture; zero for an exact model).
     """
+    check_positive("target_linearisation: step", step)
     mujoco = _mujoco()
     protocol = RenderProtocol(image_size=model.image_size, shadow_size=_SHADOW_SIZE)
     setup = _scene(_scene_xml(scene), protocol, camera, None)

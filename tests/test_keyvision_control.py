@@ -158,6 +158,8 @@ def test_target_linearisation_without_control_is_the_free_pendulum_at_upright():
     assert low == pytest.approx(-np.sqrt(rate), rel=1e-4) and imaginary == 0.0
     assert result["control_at_target"] == pytest.approx([0.0], abs=1e-12)
     assert result["curvature_tolerance"] == 0.0  # kp = 0 tolerates nothing
+    with pytest.raises(ValueError, match="step must be a finite number > 0"):
+        keyvision.target_linearisation(model, "keycld/pendulum", step=0.0)
 
 
 @pytest.mark.mujoco
