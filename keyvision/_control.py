@@ -199,6 +199,20 @@ def _true_keypoints(scene, data) -> np.ndarray:
     return np.stack([scene.basis @ point.world(data) for point in scene.keypoints])
 
 
+def _model_scene(model: KeyCLD, scene, camera, caller: str):
+    """`(protocol, scene)`: the render protocol at the model's image size and the scene seen by
+    `camera`, refused if its keypoints are not the model's in number."""
+    # a 512-texel shadow map renders the same pixels at 64 x 64 as the scenes' 2048 (a test checks)
+    # in half the time
+    protocol = RenderProtocol(image_size=model.image_size, shadow_size=_SHADOW_SIZE)
+    setup = _scene(_scene_xml(scene), protocol, camera, None)
+    if len(setup.keypoints) != model.num_keypoints:
+        raise ValueError(
+            f"{caller}: {scene} has {len(setup.keypoints)} keypoints, the model {model.num_keypoints}"
+        )
+    return protocol, setup
+
+
 def swing_up(
     model: KeyCLD,
     scene: "str | os.PathLike" = "keycld/pendulum",
@@ -262,14 +276,7 @@ def swing_up(
     for name, value in (("duration", duration), ("tolerance", tolerance), ("physics_dt", physics_dt)):
         check_positive(name, value)
     mujoco = _mujoco()
-    # a 512-texel shadow map renders the same pixels at 64 x 64 as the scenes' 2048 (a test checks)
-    # in half the time
-    protocol = RenderProtocol(image_size=model.image_size, shadow_size=_SHADOW_SIZE)
-    setup = _scene(_scene_xml(scene), protocol, camera, None)
-    if len(setup.keypoints) != model.num_keypoints:
-        raise ValueError(
-            f"swing_up: {scene} has {len(setup.keypoints)} keypoints, the model {model.num_keypoints}"
-        )
+    protocol, setup = _model_scene(model, scene, camera, "swing_up")
     frame_dt = float(setup.model.opt.timestep) * protocol.steps_per_frame if dt is None else float(dt)
     substeps = int(round(frame_dt / physics_dt))
     if substeps < 1 or abs(substeps * physics_dt - frame_dt) > 1e-9 * frame_dt:
@@ -452,13 +459,7 @@ def target_linearisation(
     """
     check_positive("target_linearisation: step", step)
     mujoco = _mujoco()
-    protocol = RenderProtocol(image_size=model.image_size, shadow_size=_SHADOW_SIZE)
-    setup = _scene(_scene_xml(scene), protocol, camera, None)
-    if len(setup.keypoints) != model.num_keypoints:
-        raise ValueError(
-            f"target_linearisation: {scene} has {len(setup.keypoints)} keypoints, "
-            f"the model {model.num_keypoints}"
-        )
+    protocol, setup = _model_scene(model, scene, camera, "target_linearisation")
     physics = setup.model
     if physics.nq != physics.nv:
         raise ValueError("target_linearisation: needs a scene of hinges and slides (nq == nv)")
