@@ -26,7 +26,8 @@ import optax
 from jaxtyping import Array, PRNGKeyArray
 
 import cldyn
-from cldyn._misc import atomic_write, check_positive
+from cldyn._fit import fit_files
+from cldyn._misc import atomic_save, atomic_write, check_positive
 
 from ._augment import Augment
 from ._data import ImageSequences
@@ -37,6 +38,7 @@ from ._model import KeyCLD
 _SCHEMA = "keyvision.Train/1"
 _STAGES = ("autoencoder", "dynamics", "joint")
 ORDER_NAME = "keypoint-order.json"  # the order of `assign_keypoints` after stage (a)
+_KEYPOINTS_SCHEMA = "keyvision.StageKeypoints/1"
 _ENCODE_FRAMES = 256  # frames per call when encoding a dataset: bounds the memory of the activations
 
 
@@ -279,6 +281,64 @@ def encode_sequences(model: KeyCLD, data: ImageSequences) -> cldyn.Sequences:
     return cldyn.Sequences(x, jnp.asarray(data.u).astype(x.dtype), data.dt)
 
 
+def _stage_keypoints(
+    model: KeyCLD,
+    data: ImageSequences,
+    validation: ImageSequences | None,
+    out: pathlib.Path | None,
+    stage: str,
+    resume: bool,
+) -> tuple[cldyn.Sequences, cldyn.Sequences | None]:
+    """The keypoints that a dynamics stage fits (`encode_sequences` of the training and validation
+    frames), kept in `out/keypoints-<stage>.npz` and read back from there on resume.
+
+    A GPU need not encode the same frames bitwise alike in two processes (its convolutions are
+    autotuned afresh), and `cldyn.fit` resumes a checkpoint only on the data it was written with:
+    re-encoded keypoints would refuse every resume past stage (b) there. A stage without a checkpoint
+    yet encodes afresh (whatever an earlier training left in `out`).
+    """
+    path = None if out is None else out / f"keypoints-{stage}.npz"
+    # only a stage that has checkpointed was fitted to them: any other starts on fresh keypoints
+    started = path is not None and fit_files(out, stage)["checkpoint"].exists()
+    if resume and started and path.is_file():
+        try:
+            with np.load(path, allow_pickle=False) as stored:
+                schema = str(stored["schema"])
+                x = np.asarray(stored["x"])
+                x_validation = np.asarray(stored["validation"]) if "validation" in stored.files else None
+        except (OSError, ValueError, KeyError, EOFError) as error:
+            raise cldyn.CheckpointError(
+                f"{path}: unreadable ({type(error).__name__}: {error}); it holds the keypoints that the "
+                f"checkpoint of stage {stage!r} was fitted to: start that stage afresh by deleting both"
+            ) from None
+        expected = (data.num_runs, data.num_samples)
+        validation_expected = None if validation is None else (validation.num_runs, validation.num_samples)
+        if (
+            schema != _KEYPOINTS_SCHEMA
+            or x.ndim != 3
+            or x.shape[:2] != expected
+            or (None if x_validation is None else x_validation.shape[:2]) != validation_expected
+        ):
+            raise cldyn.CheckpointError(
+                f"{path}: keypoints of {x.shape[:2]} runs x frames for this training's {expected} "
+                f"(validation {None if x_validation is None else x_validation.shape[:2]} for "
+                f"{validation_expected}): written by another training"
+            )
+
+        def sequences(frames, values):
+            return cldyn.Sequences(jnp.asarray(values), jnp.asarray(frames.u).astype(values.dtype), frames.dt)
+
+        return sequences(data, x), None if validation is None else sequences(validation, x_validation)
+    keypoints = encode_sequences(model, data)
+    validation_keypoints = None if validation is None else encode_sequences(model, validation)
+    if path is not None:
+        arrays = {"schema": np.asarray(_KEYPOINTS_SCHEMA), "x": np.asarray(keypoints.x)}
+        if validation_keypoints is not None:
+            arrays["validation"] = np.asarray(validation_keypoints.x)
+        atomic_save(path, lambda temporary: np.savez(temporary, **arrays))
+    return keypoints, validation_keypoints
+
+
 def stage_names(round_: int) -> tuple[str, str]:
     """The names of the joint and refit stages of a round (1, 2, ...): `joint`, `refit`, then
     `joint-2`, `refit-2`, ..."""
@@ -356,9 +416,11 @@ def train(
        keypoints with `schedule.refit_loss` (multiple shooting by default).
 
     Each stage is one `fit` with its own key (split from `key`) and its own files in `out`
-    (`checkpoint-<stage>.eqx`, `history-<stage>.json`, `model-<stage>.eqx`), float32, the batch sharded
-    over `devices`. With `resume=True` a restarted call skips the finished stages and resumes the
-    interrupted one bitwise. `out/train.json` records the key and the schedule.
+    (`checkpoint-<stage>.eqx`, `history-<stage>.json`, `model-<stage>.eqx`; the dynamics stages also
+    `keypoints-<stage>.npz`, the encoded keypoints they fit), float32, the batch sharded over
+    `devices`. With `resume=True` a restarted call skips the finished stages and resumes the
+    interrupted one bitwise, on the keypoints it started with (a GPU need not encode the frames
+    bitwise alike twice). `out/train.json` records the key and the schedule.
 
     **Arguments:**
 
@@ -431,18 +493,24 @@ def train(
 
     order = None
     if schedule.dynamics_steps:
-        keypoints = encode_sequences(model, data)
+        keypoints, validation_keypoints = _stage_keypoints(model, data, validation, out, "dynamics", resume)
         model, order = assign_keypoints(model, keypoints)
         if out is not None:  # what `keyvision.load_model(..., stage="dynamics")` needs to rebuild stage (b)
             atomic_write(out / ORDER_NAME, json.dumps({"keypoint_order": list(order)}))
         index = np.asarray([2 * k + c for k in order for c in (0, 1)])
-        keypoints = cldyn.Sequences(keypoints.x[..., index], keypoints.u, keypoints.dt)
+
+        def ordered(sequences):
+            if sequences is None:
+                return None
+            return cldyn.Sequences(sequences.x[..., index], sequences.u, sequences.dt)
+
+        keypoints = ordered(keypoints)
         stages["dynamics"] = cldyn.fit(
             model.dynamics, keypoints, loss=schedule.dynamics_loss, steps=schedule.dynamics_steps,
             key=keys["dynamics"],
             optimizer=_adam(schedule, schedule.dynamics_learning_rate, schedule.dynamics_steps),
             batching=cldyn.Runs(min(schedule.dynamics_batch, keypoints.num_runs)),
-            validation=None if validation is None else encode_sequences(model, validation),
+            validation=ordered(validation_keypoints),
             stage="dynamics", **common,
         )
         model = eqx.tree_at(lambda m: m.dynamics, model, stages["dynamics"].model)
@@ -470,13 +538,13 @@ def train(
             )
             model = stages[joint].model
         if schedule.refit_steps:
-            keypoints = encode_sequences(model, data)
+            keypoints, validation_keypoints = _stage_keypoints(model, data, validation, out, refit, resume)
             stages[refit] = cldyn.fit(
                 model.dynamics, keypoints, loss=refit_loss, steps=schedule.refit_steps,
                 key=_stage_key(key, refit),
                 optimizer=_adam(schedule, schedule.dynamics_learning_rate, schedule.refit_steps),
                 batching=cldyn.Runs(min(schedule.refit_batch, keypoints.num_runs)),
-                validation=None if validation is None else encode_sequences(model, validation),
+                validation=validation_keypoints,
                 stage=refit, **common,
             )
             model = eqx.tree_at(lambda m: m.dynamics, model, stages[refit].model)

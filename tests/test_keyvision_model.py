@@ -14,6 +14,7 @@ import pytest
 
 import cldyn
 import keyvision
+import keyvision._train as keyvision_train
 
 EXACT = 1e-9  # float64 values computed along two routes by the same operations in another order
 VPT_FRACTION_TOL = 1e-12
@@ -326,6 +327,38 @@ def test_interrupted_training_resumes_bitwise(trained, tmp_path, step_compilatio
     _assert_bitwise_equal(resumed.model, whole.model)
     # the same schedule as the fixture's training: every stage's step was compiled there already
     assert step_compilations == []
+
+
+def test_resume_fits_the_dynamics_to_the_keypoints_it_started_with(trained, tmp_path, monkeypatch):
+    """An estimator that encodes the same frames slightly differently in a later process (a GPU's
+    autotuned convolutions) neither blocks a resume past stage (b) nor changes what it fits."""
+    _, data, _, whole, _ = trained
+    model = _model(jax.random.key(0))
+    with pytest.raises(KeyboardInterrupt):
+        keyvision.train(model, data, key=jax.random.key(1), schedule=SCHEDULE, out=tmp_path,
+                        resume=True, progress_meter=_KillAt("refit", SCHEDULE.refit_steps // 2))
+    names = {path.name for path in tmp_path.glob("keypoints-*.npz")}
+    assert names == {"keypoints-dynamics.npz", "keypoints-refit.npz"}
+    encode = keyvision_train.encode_sequences
+
+    def jittered(model, frames):
+        keypoints = encode(model, frames)
+        return cldyn.Sequences(keypoints.x + 1e-4, keypoints.u, keypoints.dt)
+
+    monkeypatch.setattr(keyvision_train, "encode_sequences", jittered)
+    resumed = keyvision.train(
+        model, data, key=jax.random.key(1), schedule=SCHEDULE, out=tmp_path, resume=True
+    )
+    _assert_bitwise_equal(resumed.model, whole.model)
+    # keypoints that do not fit this training are refused by name, not fitted
+    stored = tmp_path / "keypoints-refit.npz"
+    with np.load(stored) as arrays:
+        np.savez(stored, schema=arrays["schema"], x=arrays["x"][:, :5])
+    with pytest.raises(cldyn.CheckpointError, match="keypoints-refit.npz: keypoints .* another training"):
+        keyvision.train(model, data, key=jax.random.key(1), schedule=SCHEDULE, out=tmp_path, resume=True)
+    stored.write_bytes(b"not an npz")
+    with pytest.raises(cldyn.CheckpointError, match="keypoints-refit.npz: unreadable"):
+        keyvision.train(model, data, key=jax.random.key(1), schedule=SCHEDULE, out=tmp_path, resume=True)
 
 
 def test_load_model_rebuilds_the_model_after_every_stage(trained, tmp_path):

@@ -3,7 +3,8 @@
 The output directory holds `keyvision.json` (the model's sizes, the dynamics' cldyn spec, the data,
 the seed and the schedule), `model.eqx` (the trained parameters: `keyvision evaluate --model` reads
 both), and `keyvision.train`'s own files (`train.json`, and per stage `checkpoint-<stage>.eqx`,
-`history-<stage>.json`, `model-<stage>.eqx`) from which `--resume` continues.
+`history-<stage>.json`, `model-<stage>.eqx`, and for the dynamics stages `keypoints-<stage>.npz`, the
+keypoints they fit) from which `--resume` continues.
 """
 
 import argparse
@@ -25,7 +26,7 @@ from cldyn._keycld import KEYCLD_SCENES, MODEL_KINDS
 from .._files import INITIAL_NAME
 from ._common import MODEL_NAME, SPEC_NAME, frames_file
 
-_STAGE_FILES = (("checkpoint", "eqx"), ("history", "json"), ("model", "eqx"))
+_STAGE_FILES = (("checkpoint", "eqx"), ("history", "json"), ("model", "eqx"), ("keypoints", "npz"))
 _VALIDATION_RUNS = 4  # validated in one call at every checkpoint: a few runs suffice
 _COLLOCATION_FRAMES = 5  # the collocation loss's central differences of central differences
 
