@@ -57,6 +57,7 @@ RECIPE = {
     "heatmap_weight": (float, 0.0),
     "dynamics_weight": (float, 60.0),
     "constraint_weight": (float, 10.0),
+    "constraint_drift": (str, "window"),
 }
 
 

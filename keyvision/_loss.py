@@ -83,7 +83,8 @@ class KeypointDynamics(AbstractLoss):
 
 
 class ConstraintDrift(AbstractLoss):
-    """The drift of the constraint values of the encoded keypoints along each window of frames.
+    """The drift of the constraint values of the encoded keypoints along each window of frames, or
+    over the whole batch (`pooled=True`).
 
     Holonomic constraints hold at a constant value along a run (a pole keeps its length, a cart its
     height), but reconstruction cannot tell keypoints on the bodies from any smooth remapping of
@@ -99,12 +100,33 @@ class ConstraintDrift(AbstractLoss):
     the Jacobian of the constraints enters the dynamics (eq. 6), and this term asks no more: the
     lengths stay free. Needs windows of at least two frames and dynamics with constraints.
 
+    With `pooled=True` the variance is taken over every frame of every window of the batch,
+    $\\operatorname{mean}_c \\operatorname{var}_{r, i} \\Phi_c(x_{r,i})$: zero exactly when each
+    constraint value is one constant in all of them. A mechanism's lengths are the same in every
+    run, and the windows of a batch come from different runs in different poses; along one short
+    window the pose barely changes, so a keypoint that slides along its link with the pose keeps each
+    window's values nearly constant. An acrobot estimator did just that (its first keypoint at the
+    elbow when hanging, halfway up the first link at upright: that link's length spread 2.5 pixels
+    over the validation frames, 0.7 along a run), and the per-window term left it there; the pooled
+    one brought the spread to 0.35 pixels (`docs/images.md`). Any batch of at least two frames
+    will do.
+
+    **Fields:**
+
+    - `pooled`: the variance over the whole batch (`True`) or along each window (`False`).
+
     !!! example
 
         ```python
-        loss = keyvision.Reconstruction() + 10.0 * keyvision.ConstraintDrift()
+        loss = keyvision.Reconstruction() + 10.0 * keyvision.ConstraintDrift(pooled=True)
         ```
     """
+
+    pooled: bool = eqx.field(default=False, static=True)
+
+    def __check_init__(self):
+        if not isinstance(self.pooled, bool):
+            raise TypeError(f"ConstraintDrift: pooled must be True or False, got {self.pooled!r}")
 
     def __call__(self, model: KeyCLD, batch: ImageSequences) -> Array:
         constraint = getattr(model.dynamics, "constraint", None)
@@ -114,9 +136,12 @@ class ConstraintDrift(AbstractLoss):
                 f"constraint), got {type(model.dynamics).__name__} without one"
             )
         x = model.encode(_images(model, batch), batch.transforms)
-        if x.ndim != 3 or x.shape[1] < 2:
-            raise ValueError(f"ConstraintDrift: needs windows of at least 2 frames, got keypoints {x.shape}")
+        if x.ndim != 3 or x.shape[1] * (x.shape[0] if self.pooled else 1) < 2:
+            needs = "a batch of at least 2 frames" if self.pooled else "windows of at least 2 frames"
+            raise ValueError(f"ConstraintDrift: needs {needs}, got keypoints {x.shape}")
         values = jax.vmap(jax.vmap(constraint))(x)  # (windows, frames, constraints)
+        if self.pooled:
+            return jnp.mean(jnp.var(values.reshape(-1, values.shape[-1]), axis=0))
         return jnp.mean(jnp.var(values, axis=1))
 
 

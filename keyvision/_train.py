@@ -81,6 +81,9 @@ class Schedule:
       it out; dynamics without constraints never have it): the variance of the constraint values of
       the keypoints along each window, a squared length in the image frame like `h^4 L_d`. It keeps
       the keypoints on rigid points of the bodies, which reconstruction alone does not.
+    - `constraint_drift`: `"window"` (the variance along each window) or `"pooled"` (over the whole
+      batch, `ConstraintDrift(pooled=True)`: the lengths are the same in every run, which a
+      keypoint that slides along its link with the pose breaks only across windows).
     - `augment`: show the estimator every frame of stages (a) and (c) under a random dihedral
       transform (`keyvision.Augment`), its keypoints mapped back: trains an equivariant estimator.
     - `learning_rate`: Adam's peak learning rate for the networks in stage (a) (after element-wise
@@ -117,6 +120,7 @@ class Schedule:
     dynamics_weight: float = 60.0
     heatmap_weight: float = 0.1
     constraint_weight: float = 10.0
+    constraint_drift: str = "window"
     augment: bool = False
     learning_rate: float = 1e-3
     dynamics_learning_rate: float = 1e-3
@@ -142,6 +146,10 @@ class Schedule:
             )
         for name in ("dynamics_weight", "refine_weight", "heatmap_weight", "constraint_weight"):
             check_positive(f"Schedule: {name}", getattr(self, name), allow_zero=True)
+        if self.constraint_drift not in ("window", "pooled"):
+            raise ValueError(
+                f"Schedule: constraint_drift must be 'window' or 'pooled', got {self.constraint_drift!r}"
+            )
         if not isinstance(self.augment, bool):
             raise TypeError(f"Schedule: augment must be True or False, got {self.augment!r}")
         if not isinstance(self.dynamics_loss, cldyn.AbstractLoss):
@@ -169,7 +177,7 @@ def joint_stage(recipe: dict, steps: int) -> Schedule:
     """The joint stage (c) of a training recipe (`keyvision.json`'s `schedule`), for `steps` steps and
     nothing else: what `keyvision.identify(refine=)` runs after adding effects to a model."""
     fields = ("joint_batch", "window", "joint_learning_rate", "dynamics_weight", "heatmap_weight")
-    fields += ("constraint_weight", "augment", "warmup_steps", "final_learning_rate")
+    fields += ("constraint_weight", "constraint_drift", "augment", "warmup_steps", "final_learning_rate")
     chosen = {name: recipe[name] for name in fields if recipe.get(name) is not None}
     return Schedule(autoencoder_steps=0, dynamics_steps=0, joint_steps=steps, refit_steps=0, **chosen)
 
@@ -475,7 +483,8 @@ def train(
         images_loss = images_loss + schedule.heatmap_weight * HeatmapRegulariser()
     windows_loss = images_loss
     if schedule.constraint_weight > 0 and getattr(model.dynamics, "constraint", None) is not None:
-        windows_loss = windows_loss + schedule.constraint_weight * ConstraintDrift()
+        drift = ConstraintDrift(pooled=schedule.constraint_drift == "pooled")
+        windows_loss = windows_loss + schedule.constraint_weight * drift
     stages = {}
 
     def frames_batching(batch_size: int, length: int) -> cldyn.AbstractBatching:

@@ -234,6 +234,45 @@ def test_constraint_drift_is_the_variance_of_the_constraint_values_along_each_wi
         keyvision.ConstraintDrift()(model, single)
 
 
+def test_pooled_constraint_drift_is_the_variance_over_every_frame_of_the_batch():
+    # two rigid windows of a cart-pole whose pole is 0.5 long in one and 0.6 in the other: each window
+    # keeps its constraints (per-window drift: the 0.01 grid's rounding only), the batch does not
+    angles = np.array([0.0, 0.4, 0.9, 1.5, 2.2])
+    lengths = np.array([[0.5] * 5, [0.6] * 5])
+    cart = np.stack([np.broadcast_to(np.linspace(-0.3, 0.25, 5), (2, 5)), np.full((2, 5), 0.1)], axis=-1)
+    tip = cart + lengths[..., None] * np.stack([np.sin(angles), np.cos(angles)], axis=-1)
+    keypoints = np.round(np.concatenate([cart, tip], axis=-1), 2)
+    cart, tip = keypoints[..., :2], keypoints[..., 2:]
+    values = np.stack([cart[..., 1], np.linalg.norm(tip - cart, axis=-1)], axis=-1)  # (2, 5, 2)
+    keys = jax.random.split(jax.random.key(6))
+    model = keyvision.KeyCLD(
+        _Readout(),
+        cldyn.keycld_model(4, 1, cldyn.keycld_constraint("cartpole"), key=keys[0], width=8),
+        keyvision.Renderer(2, width=WIDTH, image_size=SIZE, key=keys[1]),
+    )
+    batch = keyvision.ImageSequences(_readout_frames(keypoints), np.zeros((2, 5, 1), np.float32), DT)
+    pooled = keyvision.ConstraintDrift(pooled=True)
+    expected = np.mean(np.var(values.reshape(-1, 2), axis=0))  # the lengths' spread: 0.05^2 / 2
+    assert float(pooled(model, batch)) == pytest.approx(expected, rel=1e-4)
+    assert expected == pytest.approx(0.05**2 / 2, rel=0.05)
+    assert float(keyvision.ConstraintDrift()(model, batch)) < 0.01 * expected  # the 0.01 grid only
+    # one window (three frames of each pole length): pooled and per-window are the same variance
+    mixed = keypoints[:, :3].reshape(1, 6, 4)
+    one = keyvision.ImageSequences(_readout_frames(mixed), np.zeros((1, 6, 1), np.float32), DT)
+    per_window = float(keyvision.ConstraintDrift()(model, one))
+    assert float(pooled(model, one)) == pytest.approx(per_window, rel=1e-5) and per_window > 1e-4
+    # single frames of different runs (an autoencoder's batch): pooled measures them
+    single = keyvision.ImageSequences(_readout_frames(keypoints[:, 2:3]), np.zeros((2, 1, 1), np.float32), DT)
+    assert float(pooled(model, single)) == pytest.approx(np.mean(np.var(values[:, 2], axis=0)), rel=1e-4)
+    lone = keyvision.ImageSequences(_readout_frames(keypoints[:1, :1]), np.zeros((1, 1, 1), np.float32), DT)
+    with pytest.raises(ValueError, match="a batch of at least 2 frames"):
+        pooled(model, lone)
+    with pytest.raises(TypeError, match="pooled must be True or False"):
+        keyvision.ConstraintDrift(pooled="yes")
+    with pytest.raises(ValueError, match="constraint_drift must be 'window' or 'pooled'"):
+        keyvision.Schedule(constraint_drift="batch")
+
+
 # -- training ----------------------------------------------------------------------------------------
 
 RUNS, SAMPLES = 16, 16

@@ -151,6 +151,13 @@ def register(subparsers) -> None:
         "each window) in the joint stages; 0 leaves it out",
     )
     parser.add_argument(
+        "--constraint-drift",
+        choices=("window", "pooled"),
+        default=default.constraint_drift,
+        help="the constraint drift's variance along each window, or pooled over the whole batch (the "
+        "lengths are the same in every run: keeps a keypoint from sliding along its link with the pose)",
+    )
+    parser.add_argument(
         "--augment",
         action="store_true",
         help="show the estimator each frame turned and mirrored at random (dihedral augmentation)",
@@ -321,6 +328,7 @@ def run(args: argparse.Namespace) -> int:
         refine_weight=args.refine_weight,
         heatmap_weight=args.heatmap_weight,
         constraint_weight=args.constraint_weight,
+        constraint_drift=args.constraint_drift,
         augment=args.augment,
     )
     spec.update(
@@ -342,6 +350,8 @@ def run(args: argparse.Namespace) -> int:
             raise CommandError(
                 f"{spec_path}: unreadable ({error}); cannot check what --resume continues"
             ) from None
+        if isinstance(previous.get("schedule"), dict):  # a field added since: it held its default then
+            previous["schedule"] = {**keyvision.Schedule().describe(), **previous["schedule"]}
         changed = sorted(name for name in {**previous, **spec} if previous.get(name) != spec.get(name))
         if changed == ["schedule"] and _more_rounds(previous["schedule"], spec["schedule"]):
             changed = []  # further rounds continue a training (finished or not): stages already run stay
