@@ -317,7 +317,8 @@ def _stage_keypoints(
         except (OSError, ValueError, KeyError, EOFError) as error:
             raise cldyn.CheckpointError(
                 f"{path}: unreadable ({type(error).__name__}: {error}); it holds the keypoints that the "
-                f"checkpoint of stage {stage!r} was fitted to: start that stage afresh by deleting both"
+                f"checkpoint of stage {stage!r} was fitted to: delete it and checkpoint-{stage}.eqx to "
+                "run that stage afresh"
             ) from None
         expected = (data.num_runs, data.num_samples)
         validation_expected = None if validation is None else (validation.num_runs, validation.num_samples)
