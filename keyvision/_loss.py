@@ -108,8 +108,9 @@ class ConstraintDrift(AbstractLoss):
     window's values nearly constant. An acrobot estimator did just that (its first keypoint at the
     elbow when hanging, halfway up the first link at upright: that link's length spread 2.5 pixels
     over the validation frames, 0.7 along a run), and the per-window term left it there; the pooled
-    one brought the spread to 0.35 pixels (`docs/images.md`). Any batch of at least two frames
-    will do.
+    one brought the spread to 0.35 pixels. Like the per-window term it is a squared length, smaller
+    for shorter links: from an autoencoder whose keypoints were already close it drew two of them
+    together (`docs/images.md`, "Control from frames"). Any batch of at least two frames will do.
 
     **Fields:**
 
