@@ -198,26 +198,37 @@ def _readout_frames(keypoints):
     return frames
 
 
-def test_constraint_drift_is_the_variance_of_the_constraint_values_along_each_window():
-    # cart-pole keypoints: the cart at (c, y), the pole's tip at distance r; window 0 is rigid (its
-    # cart keeps its height, its pole its length: it scores only the rounding to the readout's grid),
-    # window 1 has both drift
+def _cartpole_keypoints(cart_x, heights, lengths):
+    """Cart-pole keypoints of two windows of five frames (the cart at `(cart_x, heights)`, the pole's tip
+    at `lengths` from it, turning through fixed angles) on the readout's 0.01 grid, and their constraint
+    values (the cart's height, the pole's length) `(2, 5, 2)`."""
     angles = np.array([0.0, 0.4, 0.9, 1.5, 2.2])
-    cart_x = np.array([-0.3, -0.2, 0.0, 0.1, 0.25])
-    heights = np.array([[0.1] * 5, [0.1, 0.12, 0.08, 0.1, 0.15]])
-    lengths = np.array([[0.5] * 5, [0.5, 0.55, 0.45, 0.6, 0.5]])
     cart = np.stack([np.broadcast_to(cart_x, (2, 5)), heights], axis=-1)
     tip = cart + lengths[..., None] * np.stack([np.sin(angles), np.cos(angles)], axis=-1)
-    keypoints = np.round(np.concatenate([cart, tip], axis=-1), 2)  # on the readout's 0.01 grid
+    keypoints = np.round(np.concatenate([cart, tip], axis=-1), 2)
     cart, tip = keypoints[..., :2], keypoints[..., 2:]
-    values = np.stack([cart[..., 1], np.linalg.norm(tip - cart, axis=-1)], axis=-1)  # (2, 5, 2)
-    expected = np.mean(np.var(values, axis=1))
-    keys = jax.random.split(jax.random.key(5))
-    model = keyvision.KeyCLD(
+    return keypoints, np.stack([cart[..., 1], np.linalg.norm(tip - cart, axis=-1)], axis=-1)
+
+
+def _cartpole_readout(keys):
+    """A KeyCLD model whose estimator reads its keypoints off the frames, with the cart-pole's constraints."""
+    return keyvision.KeyCLD(
         _Readout(),
         cldyn.keycld_model(4, 1, cldyn.keycld_constraint("cartpole"), key=keys[0], width=8),
         keyvision.Renderer(2, width=WIDTH, image_size=SIZE, key=keys[1]),
     )
+
+
+def test_constraint_drift_is_the_variance_of_the_constraint_values_along_each_window():
+    # cart-pole keypoints: the cart at (c, y), the pole's tip at distance r; window 0 is rigid (its
+    # cart keeps its height, its pole its length: it scores only the rounding to the readout's grid),
+    # window 1 has both drift
+    heights = np.array([[0.1] * 5, [0.1, 0.12, 0.08, 0.1, 0.15]])
+    lengths = np.array([[0.5] * 5, [0.5, 0.55, 0.45, 0.6, 0.5]])
+    keypoints, values = _cartpole_keypoints(np.array([-0.3, -0.2, 0.0, 0.1, 0.25]), heights, lengths)
+    expected = np.mean(np.var(values, axis=1))
+    keys = jax.random.split(jax.random.key(5))
+    model = _cartpole_readout(keys)
     batch = keyvision.ImageSequences(_readout_frames(keypoints), np.zeros((2, 5, 1), np.float32), DT)
     assert np.allclose(np.asarray(model.encode(batch.images())), keypoints, atol=1e-6)
     assert keyvision.ConstraintDrift()(model, batch) == pytest.approx(expected, rel=1e-5)
@@ -237,19 +248,9 @@ def test_constraint_drift_is_the_variance_of_the_constraint_values_along_each_wi
 def test_pooled_constraint_drift_is_the_variance_over_every_frame_of_the_batch():
     # two rigid windows of a cart-pole whose pole is 0.5 long in one and 0.6 in the other: each window
     # keeps its constraints (per-window drift: the 0.01 grid's rounding only), the batch does not
-    angles = np.array([0.0, 0.4, 0.9, 1.5, 2.2])
     lengths = np.array([[0.5] * 5, [0.6] * 5])
-    cart = np.stack([np.broadcast_to(np.linspace(-0.3, 0.25, 5), (2, 5)), np.full((2, 5), 0.1)], axis=-1)
-    tip = cart + lengths[..., None] * np.stack([np.sin(angles), np.cos(angles)], axis=-1)
-    keypoints = np.round(np.concatenate([cart, tip], axis=-1), 2)
-    cart, tip = keypoints[..., :2], keypoints[..., 2:]
-    values = np.stack([cart[..., 1], np.linalg.norm(tip - cart, axis=-1)], axis=-1)  # (2, 5, 2)
-    keys = jax.random.split(jax.random.key(6))
-    model = keyvision.KeyCLD(
-        _Readout(),
-        cldyn.keycld_model(4, 1, cldyn.keycld_constraint("cartpole"), key=keys[0], width=8),
-        keyvision.Renderer(2, width=WIDTH, image_size=SIZE, key=keys[1]),
-    )
+    keypoints, values = _cartpole_keypoints(np.linspace(-0.3, 0.25, 5), np.full((2, 5), 0.1), lengths)
+    model = _cartpole_readout(jax.random.split(jax.random.key(6)))
     batch = keyvision.ImageSequences(_readout_frames(keypoints), np.zeros((2, 5, 1), np.float32), DT)
     pooled = keyvision.ConstraintDrift(pooled=True)
     expected = np.mean(np.var(values.reshape(-1, 2), axis=0))  # the lengths' spread: 0.05^2 / 2
