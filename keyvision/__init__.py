@@ -2,6 +2,7 @@
 
 import importlib.metadata
 
+from ._assign import assign_keypoints as assign_keypoints
 from ._augment import (
     Augment as Augment,
     restore_keypoints as restore_keypoints,
@@ -68,7 +69,6 @@ from ._renderer import (
 from ._train import (
     Schedule as Schedule,
     TrainResult as TrainResult,
-    assign_keypoints as assign_keypoints,
     encode_sequences as encode_sequences,
     train as train,
 )

@@ -115,7 +115,7 @@ def _load_stage(directory: pathlib.Path, spec: dict, like: KeyCLD, stage: str) -
         )
     done = stages[: stages.index(stage) + 1]
     # the stages that train the networks (and the dynamics with them), saving the whole model
-    networks = [s for s in done if s == "autoencoder" or s.startswith("joint")]
+    networks = [s for s in done if s in ("autoencoder", "rigid") or s.startswith("joint")]
     if networks:
         model = _deserialise(directory / f"model-{networks[-1]}.eqx", like)
         after = done[done.index(networks[-1]) + 1 :]
@@ -124,7 +124,8 @@ def _load_stage(directory: pathlib.Path, spec: dict, like: KeyCLD, stage: str) -
     else:  # the networks as initialised: `keyvision train` draws them from the first half of its seed
         model = model_from_spec(spec, key=jax.random.split(jax.random.key(spec.get("seed", 0)))[0])
         after = done
-    if "dynamics" in after and model.num_keypoints > 1:  # stage (b) renumbered the keypoints of stage (a)
+    # stage (b) renumbered the keypoints of stage (a), unless the rigid stage had (and saved them so)
+    if "dynamics" in after and "rigid" not in done and model.num_keypoints > 1:
         order_path = directory / ORDER_NAME
         try:
             order = json.loads(order_path.read_text())["keypoint_order"]

@@ -11,7 +11,7 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array
 
-from cldyn import AbstractLoss, Sequences
+from cldyn import AbstractLoss, Anchor, Distance, Sequences, Stack
 
 from ._augment import transform_images
 from ._data import ImageSequences
@@ -112,9 +112,17 @@ class ConstraintDrift(AbstractLoss):
     for shorter links: from an autoencoder whose keypoints were already close it drew two of them
     together (`docs/images.md`, "Control from frames"). Any batch of at least two frames will do.
 
+    With `relative=True` the variance of each distance constraint (`cldyn.Anchor`,
+    `cldyn.Distance`) is divided by the square of its mean over the same frames,
+    $\\operatorname{var} \\Phi_c / (\\operatorname{mean} \\Phi_c)^2$: the squared relative spread of
+    a length, the same for a link drawn at any size, so the term cannot be lowered by drawing
+    keypoints together. Other constraints (a coordinate, whose mean may be zero) keep their plain
+    variance.
+
     **Fields:**
 
     - `pooled`: the variance over the whole batch (`True`) or along each window (`False`).
+    - `relative`: each distance's variance over its mean square (`True`) or as it is (`False`).
 
     !!! example
 
@@ -124,10 +132,12 @@ class ConstraintDrift(AbstractLoss):
     """
 
     pooled: bool = eqx.field(default=False, static=True)
+    relative: bool = eqx.field(default=False, static=True)
 
     def __check_init__(self):
-        if not isinstance(self.pooled, bool):
-            raise TypeError(f"ConstraintDrift: pooled must be True or False, got {self.pooled!r}")
+        for name in ("pooled", "relative"):
+            if not isinstance(getattr(self, name), bool):
+                raise TypeError(f"ConstraintDrift: {name} must be True or False, got {getattr(self, name)!r}")
 
     def __call__(self, model: KeyCLD, batch: ImageSequences) -> Array:
         constraint = getattr(model.dynamics, "constraint", None)
@@ -142,8 +152,20 @@ class ConstraintDrift(AbstractLoss):
             raise ValueError(f"ConstraintDrift: needs {needs}, got keypoints {x.shape}")
         values = jax.vmap(jax.vmap(constraint))(x)  # (windows, frames, constraints)
         if self.pooled:
-            return jnp.mean(jnp.var(values.reshape(-1, values.shape[-1]), axis=0))
-        return jnp.mean(jnp.var(values, axis=1))
+            values = values.reshape(1, -1, values.shape[-1])  # one window of every frame
+        variance = jnp.var(values, axis=1)
+        if self.relative:
+            lengths = jnp.asarray(_distance_rows(constraint))
+            square = jnp.maximum(jnp.mean(values, axis=1) ** 2, jnp.finfo(values.dtype).tiny)
+            variance = jnp.where(lengths, variance / square, variance)
+        return jnp.mean(variance)
+
+
+def _distance_rows(constraint) -> tuple[bool, ...]:
+    """For each row of `constraint`'s values: whether it is a distance (`Anchor`, `Distance`)."""
+    if isinstance(constraint, Stack):
+        return tuple(row for part in constraint.constraints for row in _distance_rows(part))
+    return (isinstance(constraint, Anchor | Distance),) * constraint.num_constraints
 
 
 class HeatmapRegulariser(AbstractLoss):

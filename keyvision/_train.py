@@ -10,12 +10,9 @@ shooting.
 
 import dataclasses
 import functools
-import itertools
 import json
-import math
 import os
 import pathlib
-import warnings
 from collections.abc import Sequence
 
 import equinox as eqx
@@ -23,12 +20,13 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import optax
-from jaxtyping import Array, PRNGKeyArray
+from jaxtyping import PRNGKeyArray
 
 import cldyn
 from cldyn._fit import fit_files
 from cldyn._misc import atomic_save, atomic_write, check_positive
 
+from ._assign import assign_keypoints
 from ._augment import Augment
 from ._data import ImageSequences
 from ._evaluate import encode_batch
@@ -50,7 +48,18 @@ class Schedule:
 
     - `autoencoder_steps`: steps of stage (a), estimator and renderer on single frames with
       `Reconstruction() + heatmap_weight * HeatmapRegulariser()`; the dynamics stay frozen.
-    - `autoencoder_batch`: frames per step of stage (a).
+    - `autoencoder_batch`: frames per step of stage (a), and of the rigid stage.
+    - `rigid_steps`: steps of the rigid stage (0 leaves it out), between stage (a) and stage (b):
+      the keypoints numbered after the constraints (`keyvision.assign_keypoints`), then the
+      estimator and renderer trained further on single frames with stage (a)'s loss plus
+      `rigid_weight * ConstraintDrift(pooled=True, relative=True)`. Stage (a) places keypoints by
+      reconstruction alone, and nothing there asks a keypoint to sit on a joint: an acrobot's
+      first keypoint slid from its elbow (hanging) to halfway up the first link (upright). Only
+      the elbow keeps a fixed distance both to the pivot and to a point of the second link, so
+      the relative drift of the scene's constraints, pooled over frames of many poses, has its
+      minimum there (`docs/images.md`, "Control from frames"). Needs dynamics with constraints.
+    - `rigid_weight`: the weight of the relative drift in the rigid stage (a squared relative
+      spread of the lengths; stage (a)'s reconstruction error is about 1e-4 to 1e-3).
     - `dynamics_steps`: steps of stage (b), the dynamics alone fitted to the keypoints of the frozen
       estimator with `dynamics_loss`.
     - `dynamics_batch`: runs of keypoints per step of stage (b) (at most the number of runs).
@@ -81,9 +90,12 @@ class Schedule:
       it out; dynamics without constraints never have it): the variance of the constraint values of
       the keypoints along each window, a squared length in the image frame like `h^4 L_d`. It keeps
       the keypoints on rigid points of the bodies, which reconstruction alone does not.
-    - `constraint_drift`: `"window"` (the variance along each window) or `"pooled"` (over the whole
+    - `constraint_drift`: `"window"` (the variance along each window), `"pooled"` (over the whole
       batch, `ConstraintDrift(pooled=True)`: the lengths are the same in every run, which a
-      keypoint that slides along its link with the pose breaks only across windows).
+      keypoint that slides along its link with the pose breaks only across windows) or
+      `"relative"` (pooled, each length's variance over its mean square,
+      `ConstraintDrift(pooled=True, relative=True)`: scale-free, it gains nothing from drawing
+      keypoints together).
     - `augment`: show the estimator every frame of stages (a) and (c) under a random dihedral
       transform (`keyvision.Augment`), its keypoints mapped back: trains an equivariant estimator.
     - `learning_rate`: Adam's peak learning rate for the networks in stage (a) (after element-wise
@@ -105,6 +117,8 @@ class Schedule:
 
     autoencoder_steps: int = 2000
     autoencoder_batch: int = 64
+    rigid_steps: int = 0
+    rigid_weight: float = 0.01
     dynamics_steps: int = 2000
     dynamics_batch: int = 32
     joint_steps: int = 1000
@@ -131,7 +145,7 @@ class Schedule:
     checkpoint_every: int = 500
 
     def __post_init__(self):
-        for name in ("autoencoder_steps", "dynamics_steps", "joint_steps", "refit_steps"):
+        for name in ("autoencoder_steps", "rigid_steps", "dynamics_steps", "joint_steps", "refit_steps"):
             check_positive(f"Schedule: {name}", getattr(self, name), integer=True, allow_zero=True)
         for name in ("autoencoder_batch", "dynamics_batch", "joint_batch", "refit_batch", "window",
                      "rounds", "log_every", "checkpoint_every"):
@@ -144,11 +158,13 @@ class Schedule:
                 "Schedule: final_learning_rate is a fraction of the peak, at most 1; got "
                 f"{self.final_learning_rate}"
             )
-        for name in ("dynamics_weight", "refine_weight", "heatmap_weight", "constraint_weight"):
+        weights = ("dynamics_weight", "refine_weight", "heatmap_weight", "constraint_weight", "rigid_weight")
+        for name in weights:
             check_positive(f"Schedule: {name}", getattr(self, name), allow_zero=True)
-        if self.constraint_drift not in ("window", "pooled"):
+        if self.constraint_drift not in ("window", "pooled", "relative"):
             raise ValueError(
-                f"Schedule: constraint_drift must be 'window' or 'pooled', got {self.constraint_drift!r}"
+                "Schedule: constraint_drift must be 'window', 'pooled' or 'relative', got "
+                f"{self.constraint_drift!r}"
             )
         if not isinstance(self.augment, bool):
             raise TypeError(f"Schedule: augment must be True or False, got {self.augment!r}")
@@ -199,64 +215,6 @@ class TrainResult:
     model: KeyCLD
     stages: dict
     keypoint_order: tuple[int, ...] | None = None
-
-
-_MAX_ASSIGNED = 6  # keypoints: every order is tried (720 at most)
-
-
-@eqx.filter_jit
-def _constraint_spread(constraint, x: Array) -> Array:
-    """The mean over runs of the variance over time of each constraint value, `x` `(R, T, k)`."""
-    values = jax.vmap(jax.vmap(constraint))(x)
-    return jnp.mean(jnp.var(values, axis=1), axis=0)
-
-
-def assign_keypoints(model: KeyCLD, keypoints: cldyn.Sequences) -> tuple[KeyCLD, tuple[int, ...]]:
-    """Number the keypoints of a trained autoencoder so that they keep the dynamics' constraints.
-
-    Stage (a) of `keyvision.train` places the keypoints by reconstruction alone, in no particular
-    order, while the constraints of the dynamics give each keypoint a role (in KeyCLD's cart-pole
-    keypoint 0 is the cart, whose height is fixed, and keypoint 1 the pole's end at a fixed
-    distance from it). Of every order of the keypoints, the one whose constraint values vary least
-    within the runs, $\\sum_j \\operatorname{mean}_r \\operatorname{Var}_t \\Phi_j(x_{r,t})$, is
-    applied to the estimator's outputs and the renderer's inputs (`permute`): the autoencoder draws
-    the same images, with its keypoints renumbered.
-
-    **Arguments:**
-
-    - `model`: a `keyvision.KeyCLD` whose dynamics have constraints (others are returned as given).
-    - `keypoints`: the encoded training runs, `cldyn.Sequences` (`keyvision.encode_sequences`).
-
-    **Returns:** `(model, order)`: the renumbered model and the order, keypoint `k` being the old
-    keypoint `order[k]`.
-
-    !!! example
-
-        ```python
-        model, order = keyvision.assign_keypoints(model, keyvision.encode_sequences(model, data))
-        ```
-    """
-    count = model.num_keypoints
-    identity = tuple(range(count))
-    constraint = getattr(model.dynamics, "constraint", None)
-    if constraint is None or count == 1:
-        return model, identity
-    if count > _MAX_ASSIGNED:
-        warnings.warn(
-            f"assign_keypoints: {count} keypoints have {math.factorial(count)} orders; left as they are",
-            stacklevel=2,
-        )
-        return model, identity
-    x = jnp.asarray(keypoints.x).reshape(*keypoints.x.shape[:2], count, 2)
-    spreads = {
-        order: float(jnp.sum(_constraint_spread(constraint, x[:, :, list(order)].reshape(keypoints.x.shape))))
-        for order in itertools.permutations(identity)
-    }
-    order = min(spreads, key=spreads.get)
-    if order == identity:
-        return model, identity
-    permuted = KeyCLD(model.estimator.permute(order), model.dynamics, model.renderer.permute(order))
-    return permuted, order
 
 
 def encode_sequences(model: KeyCLD, data: ImageSequences) -> cldyn.Sequences:
@@ -348,6 +306,15 @@ def _stage_keypoints(
     return keypoints, validation_keypoints
 
 
+def _assign(model: KeyCLD, keypoints: cldyn.Sequences, out: pathlib.Path | None):
+    """`assign_keypoints`, and the order recorded in `out` (what `keyvision.load_model` needs to
+    rebuild the stages after stage (a))."""
+    model, order = assign_keypoints(model, keypoints)
+    if out is not None:
+        atomic_write(out / ORDER_NAME, json.dumps({"keypoint_order": list(order)}))
+    return model, order
+
+
 def stage_names(round_: int) -> tuple[str, str]:
     """The names of the joint and refit stages of a round (1, 2, ...): `joint`, `refit`, then
     `joint-2`, `refit-2`, ..."""
@@ -357,7 +324,7 @@ def stage_names(round_: int) -> tuple[str, str]:
 
 def stages_run(schedule: dict) -> list[str]:
     """The names of the stages that a schedule (`Schedule.describe()`) runs, in order."""
-    names = [name for name in ("autoencoder", "dynamics") if schedule.get(f"{name}_steps")]
+    names = [name for name in ("autoencoder", "rigid", "dynamics") if schedule.get(f"{name}_steps")]
     for round_ in range(1, int(schedule.get("rounds", 1)) + 1):
         joint, refit = stage_names(round_)
         names += [joint] if schedule.get("joint_steps") else []
@@ -370,6 +337,8 @@ def _stage_key(key, stage: str):
     # fold their number into it
     if stage in _STAGES:
         return jax.random.split(key, 3)[_STAGES.index(stage)]
+    if stage == "rigid":
+        return jax.random.fold_in(key, 1)  # the rounds fold in 2 and up
     name, _, number = stage.partition("-")
     round_ = int(number) if number else 1
     return jax.random.fold_in(key, 2 * round_ + (1 if name == "refit" else 0))
@@ -414,7 +383,9 @@ def train(
     """Train a KeyCLD model on frames, unsupervised, in four stages of `cldyn.fit`.
 
     1. `"autoencoder"`: the estimator and the renderer on single frames (reconstruction, eq. 10,
-       plus the heatmap regulariser); the dynamics are frozen.
+       plus the heatmap regulariser); the dynamics are frozen. With `schedule.rigid_steps`, then
+       `"rigid"`: the keypoints numbered after the constraints (`keyvision.assign_keypoints`) and the
+       networks trained further with the relative constraint drift added (see `Schedule`).
     2. `"dynamics"`: the frames are encoded once by the frozen estimator
        (`keyvision.encode_sequences`) and the dynamics model is fitted to the keypoints with
        `schedule.dynamics_loss` (collocation, eq. 11-13: seconds, no images involved).
@@ -461,6 +432,11 @@ def train(
         raise TypeError(f"train: data must be keyvision.ImageSequences, got {type(data).__name__}")
     if not isinstance(schedule, Schedule):
         raise TypeError(f"train: schedule must be a keyvision.Schedule, got {type(schedule).__name__}")
+    if schedule.rigid_steps and getattr(model.dynamics, "constraint", None) is None:
+        raise ValueError(
+            "train: the rigid stage (Schedule.rigid_steps) needs dynamics with constraints, got "
+            f"{type(model.dynamics).__name__} without any"
+        )
     keys = dict(zip(_STAGES, jax.random.split(key, 3)))
     if out is not None:
         out = pathlib.Path(out)
@@ -484,7 +460,9 @@ def train(
         images_loss = images_loss + schedule.heatmap_weight * HeatmapRegulariser()
     windows_loss = images_loss
     if schedule.constraint_weight > 0 and getattr(model.dynamics, "constraint", None) is not None:
-        drift = ConstraintDrift(pooled=schedule.constraint_drift == "pooled")
+        drift = ConstraintDrift(
+            pooled=schedule.constraint_drift != "window", relative=schedule.constraint_drift == "relative"
+        )
         windows_loss = windows_loss + schedule.constraint_weight * drift
     stages = {}
 
@@ -502,16 +480,28 @@ def train(
         model = stages["autoencoder"].model
 
     order = None
+    if schedule.rigid_steps:
+        model, order = _assign(model, encode_sequences(model, data), out)
+        rigid_loss = images_loss + schedule.rigid_weight * ConstraintDrift(pooled=True, relative=True)
+        stages["rigid"] = cldyn.fit(
+            model, data, loss=rigid_loss, steps=schedule.rigid_steps, key=_stage_key(key, "rigid"),
+            optimizer=_adam(schedule, schedule.learning_rate, schedule.rigid_steps),
+            batching=frames_batching(schedule.autoencoder_batch, 1),
+            validation=validation, trainable=_networks_only, stage="rigid", loop=images_loop, **common,
+        )
+        model = stages["rigid"].model
+
     if schedule.dynamics_steps:
         keypoints, validation_keypoints = _stage_keypoints(model, data, validation, out, "dynamics", resume)
-        model, order = assign_keypoints(model, keypoints)
-        if out is not None:  # what `keyvision.load_model(..., stage="dynamics")` needs to rebuild stage (b)
-            atomic_write(out / ORDER_NAME, json.dumps({"keypoint_order": list(order)}))
+        # after the rigid stage the estimator already gives its keypoints in the constraints' order
+        renumber = order is None
+        if renumber:
+            model, order = _assign(model, keypoints, out)
         index = np.asarray([2 * k + c for k in order for c in (0, 1)])
 
         def ordered(sequences):
-            if sequences is None:
-                return None
+            if sequences is None or not renumber:
+                return sequences
             return cldyn.Sequences(sequences.x[..., index], sequences.u, sequences.dt)
 
         keypoints = ordered(keypoints)

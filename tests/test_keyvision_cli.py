@@ -108,6 +108,15 @@ def test_train_needs_constraints_for_a_scene_not_of_keycld(tmp_path, capsys):
     assert not (tmp_path / "out").exists()
 
 
+def test_the_rigid_stage_needs_constraints(tmp_path, capsys):
+    data = _fake_frames(tmp_path / "frames.npz")
+    status, _, err = _run(capsys, ["train", "--data", data, "--out", tmp_path / "out", "--model", "nc",
+                                   "--rigid-steps", 5])
+    assert status == 2
+    assert "--rigid-steps: --model nc has no constraints" in _error_line(err, "train")
+    assert not (tmp_path / "out").exists()
+
+
 @pytest.mark.parametrize("checkpointed", [False, True])
 def test_ctrl_c_in_train_says_how_to_resume(checkpointed, tmp_path, capsys, monkeypatch):
     import keyvision

@@ -125,6 +125,20 @@ def register(subparsers) -> None:
         "--joint-batch", type=count, default=default.joint_batch, help="windows per step of stage (c)"
     )
     parser.add_argument(
+        "--rigid-steps",
+        type=positive(integer=True, allow_zero=True),
+        default=default.rigid_steps,
+        help="steps of the rigid stage, between stage (a) and stage (b): the keypoints numbered after "
+        "the constraints, then the networks trained further on single frames with the relative "
+        "constraint drift added (draws each keypoint onto its joint); 0 leaves it out",
+    )
+    parser.add_argument(
+        "--rigid-weight",
+        type=positive(allow_zero=True),
+        default=default.rigid_weight,
+        help="weight of the relative constraint drift in the rigid stage",
+    )
+    parser.add_argument(
         "--dynamics-weight",
         type=positive(allow_zero=True),
         default=default.dynamics_weight,
@@ -152,10 +166,11 @@ def register(subparsers) -> None:
     )
     parser.add_argument(
         "--constraint-drift",
-        choices=("window", "pooled"),
+        choices=("window", "pooled", "relative"),
         default=default.constraint_drift,
         help="the constraint drift's variance along each window, or pooled over the whole batch (the "
-        "lengths are the same in every run: keeps a keypoint from sliding along its link with the pose)",
+        "lengths are the same in every run: keeps a keypoint from sliding along its link with the pose), "
+        "or pooled with each length's variance over its mean square (relative: scale-free)",
     )
     parser.add_argument(
         "--augment",
@@ -190,6 +205,8 @@ def _model_spec(args: argparse.Namespace, frames) -> dict:
         raise CommandError(
             f"the frames' scene {scene!r} is not a KeyCLD scene: give --constraint or --model nc / node2"
         )
+    if args.rigid_steps and not args.model.startswith("keycld"):
+        raise CommandError(f"--rigid-steps: --model {args.model} has no constraints to keep rigid")
     node2 = args.model == "node2"
     keypoints = len(frames.info["keypoint_names"])
     networks = {} if args.networks == "unet" else {"networks": args.networks}  # older specs have no entry
@@ -228,7 +245,8 @@ def _check_frames(args: argparse.Namespace, frames) -> None:
 def _stages(rounds: int) -> list[str]:
     from keyvision._train import stage_names
 
-    return ["autoencoder", "dynamics", *(name for r in range(1, rounds + 1) for name in stage_names(r))]
+    rounds_ = (name for r in range(1, rounds + 1) for name in stage_names(r))
+    return ["autoencoder", "rigid", "dynamics", *rounds_]
 
 
 def _networks_source(directory: str, spec: dict, frames) -> dict:
@@ -323,6 +341,8 @@ def run(args: argparse.Namespace) -> int:
         joint_learning_rate=args.joint_lr,
         warmup_steps=args.warmup_steps,
         autoencoder_batch=args.autoencoder_batch,
+        rigid_steps=args.rigid_steps,
+        rigid_weight=args.rigid_weight,
         joint_batch=args.joint_batch,
         dynamics_weight=args.dynamics_weight,
         refine_weight=args.refine_weight,
