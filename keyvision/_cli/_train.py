@@ -130,7 +130,8 @@ def register(subparsers) -> None:
         default=default.rigid_steps,
         help="steps of the rigid stage, between stage (a) and stage (b): the keypoints numbered after "
         "the constraints, then the networks trained further on single frames with the relative "
-        "constraint drift added (draws each keypoint onto its joint); 0 leaves it out",
+        "constraint drift added (asks each keypoint to sit where its constraints hold in every pose); "
+        "0 leaves it out",
     )
     parser.add_argument(
         "--rigid-weight",
@@ -245,8 +246,8 @@ def _check_frames(args: argparse.Namespace, frames) -> None:
 def _stages(rounds: int) -> list[str]:
     from keyvision._train import stage_names
 
-    rounds_ = (name for r in range(1, rounds + 1) for name in stage_names(r))
-    return ["autoencoder", "rigid", "dynamics", *rounds_]
+    later = (name for r in range(1, rounds + 1) for name in stage_names(r))
+    return ["autoencoder", "rigid", "dynamics", *later]
 
 
 def _networks_source(directory: str, spec: dict, frames) -> dict:
