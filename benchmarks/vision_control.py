@@ -16,6 +16,9 @@ Writes benchmarks/results/vision_control.json and .md, and vision_control_<scene
     python benchmarks/vision_control.py --report          # the table again from the saved rows
     python benchmarks/vision_control.py --model acrobot=DIR --linearise   # the true loop at the target only
 
+Rows are kept per scene, dynamics kind (`keycld`, `keycld-structured`, ...) and metric: a model of
+another kind adds rows beside the others.
+
 `--metric mass` weighs the shaped potential and the damping by the learnt mass matrix: a Lagrangian
 learnt from images has an arbitrary scale, and eq. 32's gains act differently at each; with the mass
 metric every mode near the target obeys e'' + kd e' + kp e = 0 whatever the scale. Rows of both metrics
@@ -58,6 +61,10 @@ def _plot(path, results) -> None:
 
 def _metric(row: dict) -> str:
     return row.get("metric", "euclidean")  # rows from before the metric option: eq. 32's
+
+
+def _kind(row: dict) -> str:
+    return row.get("kind", "keycld")  # rows from before the structured model: KeyCLD's
 
 
 def _slowest_mode(model, target, metric: str) -> dict:
@@ -124,10 +131,10 @@ def _write(rows: list) -> None:
         "gravity rate at upright (the largest eigenvalue of M^-1 G): by how much a learnt potential's "
         "curvature there may be wrong before kp = 5 cannot hold it (mass metric, exact masses).",
         "",
-        "| scene | metric | sees | success | median final error (m) | median time to 0.05 m (s) | "
+        "| scene | dynamics | metric | sees | success | median final error (m) | median time to 0.05 m (s) | "
         "slowest mode: rate (1/s), ratio | true loop at the target (1/s) | tolerance | loop steps/s | "
         "controller frames/s | real time |",
-        "| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |",
+        "| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |",
     ]
     for row in rows:
         reached, mode = row["median_time_to_tolerance"], row.get("slowest_mode")
@@ -139,7 +146,8 @@ def _write(rows: list) -> None:
             else f"{truth['largest_real_part']:+.2f} | {truth['curvature_tolerance']:.0%}"
         )
         lines.append(
-            f"| {row['scene']} | {_metric(row)} | {row['observe']} | {row['success_rate']:.0%} | "
+            f"| {row['scene']} | {_kind(row)} | {_metric(row)} | {row['observe']} | "
+            f"{row['success_rate']:.0%} | "
             f"{row['median_final_error']:.3f} | {'-' if reached is None else f'{reached:.2f}'} | {mode} | "
             f"{truth} | "
             f"{row['steps_per_second']:.0f} | {1.0 / row['seconds_per_step']['policy_per_step']:.0f} | "
@@ -198,8 +206,10 @@ def main() -> None:
         _write(rows)
         return
     new = []
+    kinds = {}
     for name, directory in models.items():
-        model, _ = keyvision.load_model(directory)
+        model, spec = keyvision.load_model(directory)
+        kinds[name] = kind = spec["dynamics"]["kind"]
         truth = keyvision.target_linearisation(model, f"keycld/{name}", metric=args.metric)
         results = []
         for observe in ("frames", "state"):
@@ -220,6 +230,7 @@ def main() -> None:
                 {
                     "scene": name,
                     "model": directory,
+                    "kind": kind,
                     "observe": observe,
                     "metric": args.metric,
                     "slowest_mode": _slowest_mode(model, result["target_keypoints"], args.metric),
@@ -235,7 +246,8 @@ def main() -> None:
                 }
             )
             print(new[-1], flush=True)
-        suffix = "" if args.metric == "euclidean" else f"_{args.metric}"
+        suffix = "" if kind == "keycld" else f"_{kind}"
+        suffix += "" if args.metric == "euclidean" else f"_{args.metric}"
         _plot(RESULTS / f"vision_control_{name}{suffix}.png", results)
     # rows of scenes and metrics not run this time are kept from the previous results (one scene
     # per call fits)
@@ -243,8 +255,12 @@ def main() -> None:
     if previous.is_file():
         import json
 
-        run = {(scene, args.metric) for scene in models}
-        rows = [r for r in json.loads(previous.read_text())["rows"] if (r["scene"], _metric(r)) not in run]
+        run = {(scene, kinds[scene], args.metric) for scene in models}
+        rows = [
+            r
+            for r in json.loads(previous.read_text())["rows"]
+            if (r["scene"], _kind(r), _metric(r)) not in run
+        ]
     _write(rows + new)
 
 

@@ -111,6 +111,7 @@ from ._integrate import (
 from ._keycld import (
     KEYCLD_SCENES as KEYCLD_SCENES,
     keycld_constraint as keycld_constraint,
+    keycld_joints as keycld_joints,
     keycld_model as keycld_model,
     model_from_spec as model_from_spec,
 )

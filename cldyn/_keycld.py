@@ -1,7 +1,7 @@
 """KeyCLD's learnable models (appendix A.4), the constraint structure of its three scenes, and the
 models of its ablation built from a JSON specification (what a fit directory records)."""
 
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 
 import jax
 import jax.numpy as jnp
@@ -9,11 +9,12 @@ from jaxtyping import PRNGKeyArray
 
 from ._baselines import SecondOrderNeuralODE
 from ._constraint import AbstractConstraint, Anchor, Distance, FixedCoordinate, Stack
+from ._coordinates import AbstractCoordinate, HingeAngle, SliderPosition
 from ._custom_types import ArrayInput
-from ._input import MLPInput
+from ._input import JointInput, MLPInput
 from ._mass import CoupledMasses, PointMasses
 from ._misc import check_positive
-from ._potential import MLPPotential
+from ._potential import Gravity, MLPPotential
 from ._system import ConstrainedLagrangian
 
 KEYCLD_SCENES = ("pendulum", "cartpole", "acrobot")
@@ -31,12 +32,25 @@ def keycld_model(
     depth: int = 2,
     dim: int = 2,
     mass: str = "point",
+    potential: str = "mlp",
+    joints: Sequence[AbstractCoordinate] | None = None,
 ) -> ConstrainedLagrangian:
     """The learnable KeyCLD model: point masses (eq. 14), an MLP potential and an MLP input matrix.
 
     Appendix A.4 of the paper: `V(x)` and `g(x)` are CELU MLPs with two hidden layers of 32 units,
     the masses are learned through their square roots. With `constraint=None` this is the KeyCLD-NC
     ablation.
+
+    `mass="coupled"`, `potential="gravity"` and `joints` replace the networks by the structure of
+    rigid bodies in uniform gravity driven by joint motors, each exact wherever every body carries
+    two of the keypoints (or one and a fixed pivot): the kinetic energy is then a constant quadratic
+    form in the keypoint velocities (`CoupledMasses`, when the centres of mass lie on the lines
+    between keypoints); the height of every centre of mass is a linear function of the keypoints, so
+    the potential is linear (`Gravity` with learnable weights on every coordinate, which also learns
+    the direction of gravity in the image); and a motor's torque on a joint does the virtual work
+    `u gear dq(x)` (`JointInput`, learnable gears). Being exact where the data is sparse (an
+    acrobot learnt from images is hardly ever near upright), they extrapolate where the networks do
+    not.
 
     **Arguments:**
 
@@ -50,6 +64,10 @@ def keycld_model(
     - `mass`: `"point"` for KeyCLD's diagonal point masses (eq. 14), or `"coupled"` for a constant
       mass matrix `A \\otimes I_d` that couples keypoints (`CoupledMasses`), exact for rigid bodies
       whose centre of mass lies between their keypoints.
+    - `potential`: `"mlp"` (KeyCLD's), or `"gravity"` for the linear potential `cldyn.Gravity`
+      (its weights start at zero).
+    - `joints`: the joint coordinate driven by each control (`cldyn.keycld_joints` for KeyCLD's
+      scenes): the input matrix is `cldyn.JointInput(joints)` (gears start at one) instead of an MLP.
 
     **Returns:** a `ConstrainedLagrangian`.
 
@@ -59,6 +77,8 @@ def keycld_model(
         constraint = cldyn.Stack([cldyn.FixedCoordinate(0, axis=1), cldyn.Distance(0, 1)])
         cartpole = cldyn.keycld_model(4, 2, constraint, key=jax.random.key(0))
         nc = cldyn.keycld_model(4, 2, None, key=jax.random.key(0))   # KeyCLD-NC
+        structured = cldyn.keycld_model(4, 2, constraint, key=jax.random.key(0), mass="coupled",
+                                        potential="gravity", joints=cldyn.keycld_joints("cartpole"))
         ```
     """
     if size <= 0 or size % dim:
@@ -79,15 +99,62 @@ def keycld_model(
         raise ValueError(f"masses must have shape ({count},), one per keypoint; got {masses.shape}")
     if mass not in ("point", "coupled"):
         raise ValueError(f"mass must be 'point' or 'coupled', got {mass!r}")
+    if potential not in ("mlp", "gravity"):
+        raise ValueError(f"potential must be 'mlp' or 'gravity', got {potential!r}")
+    if joints is not None:
+        joints = tuple(joints)
+        if len(joints) != num_inputs:
+            raise ValueError(f"joints: one joint per control, got {len(joints)} for num_inputs={num_inputs}")
+        if dim != 2:
+            raise ValueError(f"joints: joint coordinates are planar (dim=2), got dim={dim}")
+        for joint in joints:
+            try:
+                jax.eval_shape(joint, jax.ShapeDtypeStruct((size,), jnp.float32))
+            except (TypeError, IndexError, ValueError) as error:
+                raise ValueError(f"joints: {joint!r} does not apply to {count} keypoints: {error}") from None
     potential_key, input_key = jax.random.split(key)
+    if num_inputs == 0:
+        input_matrix = None
+    elif joints is not None:
+        input_matrix = JointInput(joints)
+    else:
+        input_matrix = MLPInput(size, num_inputs, width=width, depth=depth, key=input_key)
     return ConstrainedLagrangian(
         mass=PointMasses(masses, dim=dim) if mass == "point" else CoupledMasses(masses, dim=dim),
-        potential=MLPPotential(size, width=width, depth=depth, key=potential_key),
+        potential=MLPPotential(size, width=width, depth=depth, key=potential_key)
+        if potential == "mlp"
+        else Gravity(jnp.zeros(size, dtype=masses.dtype)),
         constraint=constraint,
-        input_matrix=None
-        if num_inputs == 0
-        else MLPInput(size, num_inputs, width=width, depth=depth, key=input_key),
+        input_matrix=input_matrix,
     )
+
+
+def keycld_joints(system: str) -> tuple[AbstractCoordinate, ...]:
+    """The joints that the controls of KeyCLD's scenes drive, in the keypoints of `keycld_constraint`.
+
+    - `"pendulum"`: the hinge, `HingeAngle(child=(None, 0))`;
+    - `"cartpole"`: the cart's slide `SliderPosition(0)` and the pole's hinge `HingeAngle(child=(0, 1))`;
+    - `"acrobot"`: the shoulder `HingeAngle(child=(None, 0))` and the elbow
+      `HingeAngle(child=(0, 1), parent=(None, 0))`.
+
+    One per control, in the order of the scenes' actuators; with a fixed pivot at the origin (where
+    `keycld_constraint` puts it). Directions and gears are left to learn (`cldyn.JointInput`), so
+    the image's orientation does not matter.
+
+    !!! example
+
+        ```python
+        g = cldyn.JointInput(cldyn.keycld_joints("acrobot"))   # shoulder and elbow motors
+        ```
+    """
+    key = system.removeprefix("keycld/")
+    if key == "pendulum":
+        return (HingeAngle(child=(None, 0)),)
+    if key == "cartpole":
+        return (SliderPosition(0), HingeAngle(child=(0, 1)))
+    if key == "acrobot":
+        return (HingeAngle(child=(None, 0)), HingeAngle(child=(0, 1), parent=(None, 0)))
+    raise ValueError(f"unknown KeyCLD system {system!r}; choose one of {', '.join(KEYCLD_SCENES)}")
 
 
 def keycld_constraint(system: str) -> AbstractConstraint:
@@ -116,7 +183,7 @@ def keycld_constraint(system: str) -> AbstractConstraint:
     raise ValueError(f"unknown KeyCLD system {system!r}; choose one of {', '.join(KEYCLD_SCENES)}")
 
 
-def _keycld(spec: dict, key, mass: str):
+def _keycld(spec: dict, key, mass: str, structured: bool = False):
     scene = spec.get("constraint")
     scene = scene.removeprefix("keycld/") if isinstance(scene, str) else scene
     if scene not in KEYCLD_SCENES:
@@ -132,6 +199,8 @@ def _keycld(spec: dict, key, mass: str):
         width=spec["width"],
         depth=spec["depth"],
         mass=mass,
+        potential="gravity" if structured else "mlp",
+        joints=keycld_joints(scene) if structured and spec["num_inputs"] else None,
     )
 
 
@@ -151,6 +220,7 @@ def _node2(spec: dict, key):
 _BUILDERS: dict[str, Callable] = {
     "keycld": lambda spec, key: _keycld(spec, key, "point"),
     "keycld-coupled": lambda spec, key: _keycld(spec, key, "coupled"),
+    "keycld-structured": lambda spec, key: _keycld(spec, key, "coupled", structured=True),
     "nc": _nc,
     "node2": _node2,
 }
@@ -162,10 +232,11 @@ def model_from_spec(spec: dict, *, key: PRNGKeyArray):
 
     **Arguments:**
 
-    - `spec`: a dict with `kind` (`"keycld"`, `"keycld-coupled"` (coupled masses), `"nc"` (KeyCLD
-      without constraints) or `"node2"` (`SecondOrderNeuralODE`)), `size` (`k`), `num_inputs`
-      (`l`), `width` and `depth` of the networks, and for the KeyCLD kinds `constraint`, a scene of
-      `cldyn.KEYCLD_SCENES`.
+    - `spec`: a dict with `kind` (`"keycld"`, `"keycld-coupled"` (coupled masses),
+      `"keycld-structured"` (coupled masses, `Gravity` and the scene's `keycld_joints`: no
+      networks), `"nc"` (KeyCLD without constraints) or `"node2"` (`SecondOrderNeuralODE`)),
+      `size` (`k`), `num_inputs` (`l`), `width` and `depth` of the networks, and for the KeyCLD
+      kinds `constraint`, a scene of `cldyn.KEYCLD_SCENES`.
     - `key`: a `jax.random` key for the initial parameters.
 
     **Returns:** the model. A spec that lacks an entry or names an unknown kind or scene raises a

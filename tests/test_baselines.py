@@ -55,6 +55,32 @@ def test_keycld_model_is_the_papers_model():
         cldyn.keycld_constraint("double-pendulum")
     assert cldyn.keycld_constraint("pendulum").num_constraints == 1
     assert cldyn.keycld_constraint("acrobot").num_constraints == 2
+    with pytest.raises(ValueError, match="one joint per control, got 2 for num_inputs=1"):
+        cldyn.keycld_model(4, 1, constraint, key=key, joints=cldyn.keycld_joints("cartpole"))
+    with pytest.raises(ValueError, match="does not apply to 1 keypoints"):
+        cldyn.keycld_model(2, 2, cldyn.Anchor(0), key=key, joints=cldyn.keycld_joints("acrobot"))
+    with pytest.raises(ValueError, match="potential must be 'mlp' or 'gravity'"):
+        cldyn.keycld_model(4, 2, constraint, key=key, potential="quadratic")
+    with pytest.raises(ValueError, match="unknown KeyCLD system"):
+        cldyn.keycld_joints("double-pendulum")
+
+
+def test_keycld_joints_do_the_virtual_work_of_the_motors():
+    # closed form: a motor on a hinge does work u dq; the keypoint force g(x) u must do the same on
+    # any velocity that keeps the links' lengths (the acrobot's elbow and tip at angles a, a + b)
+    a, b, l1, l2 = 0.7, -1.1, 1.3, 0.6
+    elbow = l1 * jnp.array([jnp.sin(a), -jnp.cos(a)])
+    x = jnp.concatenate([elbow, elbow + l2 * jnp.array([jnp.sin(a + b), -jnp.cos(a + b)])])
+    ad, bd = 0.4, -0.9  # joint velocities
+    elbow_d = l1 * ad * jnp.array([jnp.cos(a), jnp.sin(a)])
+    xd = jnp.concatenate([elbow_d, elbow_d + l2 * (ad + bd) * jnp.array([jnp.cos(a + b), jnp.sin(a + b)])])
+    g = cldyn.JointInput(cldyn.keycld_joints("acrobot"))(x)
+    np.testing.assert_allclose(xd @ g, [ad, bd], rtol=1e-5)
+    # the cart-pole: slide s of the cart, pole at angle p from straight down
+    s, p, sd, pd = 0.3, 2.0, -0.5, 1.7
+    x = jnp.array([s, 0.0, s + l2 * jnp.sin(p), -l2 * jnp.cos(p)])
+    xd = jnp.array([sd, 0.0, sd + l2 * pd * jnp.cos(p), l2 * pd * jnp.sin(p)])
+    np.testing.assert_allclose(xd @ cldyn.JointInput(cldyn.keycld_joints("cartpole"))(x), [sd, pd], rtol=1e-5)
 
 
 def test_coupled_masses_are_point_masses_when_diagonal_and_exact_for_a_rod():

@@ -8,6 +8,7 @@ import os
 import numpy as np
 import pytest
 
+import cldyn
 from keyvision._cli import main
 
 COMMANDS = ("render", "train", "evaluate", "control", "identify")
@@ -205,6 +206,16 @@ def test_render_train_evaluate(tmp_path, capsys):
         pairs = zip(jax.tree.leaves(getattr(trained_nc, part)), jax.tree.leaves(getattr(autoencoder, part)))
         for a, b in pairs:
             np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+    # the structured dynamics (no networks) from the same autoencoder, its stages at their own rate
+    structured = ablation[:4] + [tmp_path / "structured"] + ablation[5:]
+    structured[structured.index("nc")] = "keycld-structured"
+    status, _, err = _run(capsys, structured + ["--networks-from", model, "--dynamics-lr", 0.01])
+    assert status == 0, err
+    trained_structured, spec = keyvision.load_model(tmp_path / "structured")
+    assert spec["dynamics"]["kind"] == "keycld-structured"
+    assert spec["schedule"]["dynamics_learning_rate"] == 0.01
+    assert isinstance(trained_structured.dynamics.potential, cldyn.Gravity)
+    assert trained_structured.dynamics.input_matrix.coordinates == cldyn.keycld_joints("pendulum")
     status, _, err = _run(capsys, ablation[:-1] + ["--overwrite", "--width", 8, "--networks-from", model])
     assert status == 2 and "--networks-from" in _error_line(err, "train") and "width" in err
 

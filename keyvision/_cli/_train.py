@@ -110,6 +110,13 @@ def register(subparsers) -> None:
         help="peak learning rate of stage (c)",
     )
     parser.add_argument(
+        "--dynamics-lr",
+        type=positive(),
+        default=default.dynamics_learning_rate,
+        help="peak learning rate of the dynamics stages (b) and (d) (the structured model's few "
+        "parameters take 1e-2)",
+    )
+    parser.add_argument(
         "--warmup-steps",
         type=positive(integer=True, allow_zero=True),
         default=default.warmup_steps,
@@ -340,6 +347,7 @@ def run(args: argparse.Namespace) -> int:
         window=args.window,
         learning_rate=args.lr,
         joint_learning_rate=args.joint_lr,
+        dynamics_learning_rate=args.dynamics_lr,
         warmup_steps=args.warmup_steps,
         autoencoder_batch=args.autoencoder_batch,
         rigid_steps=args.rigid_steps,
