@@ -38,7 +38,8 @@ def register(subparsers) -> None:
         help="learn a KeyCLD model or a baseline from keypoint trajectories",
         description=(
             "Fit a KeyCLD model (point masses, MLP potential and input matrix, the scene's constraints), "
-            "KeyCLD-NC (no constraint) or NODE2 (second-order neural ODE) to keypoint trajectories: a "
+            "its structured variant (coupled masses, linear potential, joint motors), KeyCLD-NC (no "
+            "constraint) or NODE2 (second-order neural ODE) to keypoint trajectories: a "
             "KeyCLD scene recorded with MuJoCo in the paper's protocol (--scene) or a file (--data: "
             "cldyn.Sequences.save or cldyn record). Writes fit.json, model.eqx, checkpoint.eqx and "
             "history.json to --out; prints a JSON summary."
