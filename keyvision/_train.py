@@ -315,6 +315,29 @@ def _assign(model: KeyCLD, keypoints: cldyn.Sequences, out: pathlib.Path | None)
     return model, order
 
 
+def _rigid_order(model: KeyCLD, data: ImageSequences, out: pathlib.Path | None, resume: bool):
+    """The rigid stage's numbering: on resume, once that stage has checkpointed, the order it
+    recorded (the networks it fitted were numbered so; encoding every training frame again would
+    only repeat it, and on a GPU need not reproduce it bitwise); otherwise `_assign` afresh."""
+    path = None if out is None else out / ORDER_NAME
+    if not (resume and path is not None and fit_files(out, "rigid")["checkpoint"].exists()):
+        return _assign(model, encode_sequences(model, data), out)
+    try:
+        order = tuple(json.loads(path.read_text())["keypoint_order"])
+        valid = sorted(order) == list(range(model.num_keypoints))
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError, KeyError, TypeError) as error:
+        order, valid = repr(error), False
+    if not valid:
+        raise cldyn.CheckpointError(
+            f"{path}: not the keypoint order of {model.num_keypoints} keypoints that the checkpoint of "
+            f"stage 'rigid' was numbered by (read: {order}); delete it and checkpoint-rigid.eqx to run "
+            "that stage afresh"
+        )
+    if order != tuple(range(model.num_keypoints)):
+        model = KeyCLD(model.estimator.permute(order), model.dynamics, model.renderer.permute(order))
+    return model, order
+
+
 def stage_names(round_: int) -> tuple[str, str]:
     """The names of the joint and refit stages of a round (1, 2, ...): `joint`, `refit`, then
     `joint-2`, `refit-2`, ..."""
@@ -481,7 +504,7 @@ def train(
 
     order = None
     if schedule.rigid_steps:
-        model, order = _assign(model, encode_sequences(model, data), out)
+        model, order = _rigid_order(model, data, out, resume)
         rigid_loss = images_loss + schedule.rigid_weight * ConstraintDrift(pooled=True, relative=True)
         stages["rigid"] = cldyn.fit(
             model, data, loss=rigid_loss, steps=schedule.rigid_steps, key=_stage_key(key, "rigid"),

@@ -524,6 +524,24 @@ def test_the_rigid_stage_draws_the_keypoint_to_a_fixed_distance_from_the_pivot(t
     assert json.loads((tmp_path / "keypoint-order.json").read_text()) == {"keypoint_order": [0]}
     for part in ("estimator", "renderer"):
         _assert_bitwise_equal(getattr(rigid.model, part), getattr(rigid.stages["rigid"].model, part))
+    # resumed, the finished stages are read back and the rigid stage takes the order it recorded:
+    # no frame is encoded again (the dynamics stage reads the keypoints it fitted)
+    def no_encoding(*_):
+        raise AssertionError("the frames were encoded again")
+
+    with pytest.MonkeyPatch.context() as patch:
+        patch.setattr(keyvision_train, "encode_sequences", no_encoding)
+        resumed = keyvision.train(autoencoder, data, key=jax.random.key(2), schedule=schedule, out=tmp_path,
+                                  resume=True)
+    _assert_bitwise_equal(resumed.model, rigid.model)
+    assert resumed.keypoint_order == (0,)
+    # a damaged record of the order is named, and the checkpoint it belongs to is left as it was
+    checkpoint = (tmp_path / "checkpoint-rigid.eqx").read_bytes()
+    (tmp_path / "keypoint-order.json").write_text('{"keypoint_order": [1]}')
+    with pytest.raises(cldyn.CheckpointError, match="keypoint-order.json: not the keypoint order of 1"):
+        keyvision.train(autoencoder, data, key=jax.random.key(2), schedule=schedule, out=tmp_path,
+                        resume=True)
+    assert (tmp_path / "checkpoint-rigid.eqx").read_bytes() == checkpoint
     # dynamics without constraints have no rigid stage: refused before anything trains
     free = eqx.tree_at(lambda m: m.dynamics, autoencoder, _model(jax.random.key(3), keypoints=2).dynamics)
     with pytest.raises(ValueError, match="rigid stage .* needs dynamics with constraints"):
