@@ -67,5 +67,10 @@ def assign_keypoints(model: KeyCLD, keypoints: cldyn.Sequences) -> tuple[KeyCLD,
     order = min(spreads, key=spreads.get)
     if order == identity:
         return model, identity
-    permuted = KeyCLD(model.estimator.permute(order), model.dynamics, model.renderer.permute(order))
-    return permuted, order
+    return renumbered(model, order), order
+
+
+def renumbered(model: KeyCLD, order) -> KeyCLD:
+    """`model` with keypoint `k` being its keypoint `order[k]`: the order applied to the estimator's
+    outputs and the renderer's inputs (`permute`), the dynamics as they are."""
+    return KeyCLD(model.estimator.permute(order), model.dynamics, model.renderer.permute(order))

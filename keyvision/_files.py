@@ -106,6 +106,7 @@ def _deserialise(path: pathlib.Path, like):
 
 def _load_stage(directory: pathlib.Path, spec: dict, like: KeyCLD, stage: str) -> KeyCLD:
     """The model as `keyvision.train` left it after `stage`, from the stages' `model-<stage>.eqx`."""
+    from ._assign import renumbered
     from ._train import ORDER_NAME, stages_run
 
     stages = stages_run(spec.get("schedule") or {})
@@ -137,7 +138,7 @@ def _load_stage(directory: pathlib.Path, spec: dict, like: KeyCLD, stage: str) -
         except (OSError, UnicodeDecodeError, json.JSONDecodeError, KeyError, TypeError) as error:
             raise ValueError(f"{order_path}: unreadable keypoint order ({error!r})") from None
         if list(order) != list(range(model.num_keypoints)):
-            model = KeyCLD(model.estimator.permute(order), model.dynamics, model.renderer.permute(order))
+            model = renumbered(model, order)
     if after:
         dynamics = _deserialise(directory / f"model-{after[-1]}.eqx", model.dynamics)
         model = eqx.tree_at(lambda m: m.dynamics, model, dynamics)

@@ -26,7 +26,7 @@ import cldyn
 from cldyn._fit import fit_files
 from cldyn._misc import atomic_save, atomic_write, check_positive
 
-from ._assign import assign_keypoints
+from ._assign import assign_keypoints, renumbered
 from ._augment import Augment
 from ._data import ImageSequences
 from ._evaluate import encode_batch
@@ -334,7 +334,7 @@ def _rigid_order(model: KeyCLD, data: ImageSequences, out: pathlib.Path | None, 
             "that stage afresh"
         )
     if order != tuple(range(model.num_keypoints)):
-        model = KeyCLD(model.estimator.permute(order), model.dynamics, model.renderer.permute(order))
+        model = renumbered(model, order)
     return model, order
 
 
