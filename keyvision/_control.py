@@ -243,7 +243,9 @@ def swing_up(
     every true keypoint is within `tolerance` metres of its place in the upright posture over the last
     0.5 s. With `observe="state"` the policy gets the true keypoints and velocities instead of the
     frames' estimate, mapped into the model's keypoint frame by an affine fit of the estimated keypoints
-    to the true ones on 200 rendered poses (a learnt keypoint need not sit where the scene's does): what
+    to the true ones on 200 rendered poses (a learnt keypoint need not sit where the scene's does), and
+    the default target is the upright posture through the same map (not the estimator's reading of the
+    target frame, which differs from it by the fit's residual there, about a pixel on the acrobot): what
     seeing through the camera costs.
 
     **Arguments:**
@@ -251,7 +253,8 @@ def swing_up(
     - `model`: a trained `keyvision.KeyCLD` of `scene`.
     - `scene`: what `keyvision.render` accepts (`"keycld/pendulum"`, an MJCF, ...).
     - `observe`: `"frames"` (the policy sees rendered frames) or `"state"` (true state, for reference).
-    - `target`: a target frame `(H, W, 3)`; by default the scene rendered in its upright posture.
+    - `target`: a target frame `(H, W, 3)`; by default the scene rendered in its upright posture
+      (with `observe="state"`, a given frame is read by the estimator, the default is calibrated).
     - `kp`, `kd`, `limit`, `metric`: the controller's gains, saturation and metric
       (`cldyn.EnergyShaping`; `metric="mass"` for gains that do not depend on the learnt Lagrangian's
       arbitrary scale).
@@ -293,14 +296,18 @@ def swing_up(
         target_world = _true_keypoints(setup, data)
         renderer.update_scene(data, camera=setup.camera)
         target_frame = renderer.render().copy() if target is None else np.asarray(target)
-        policy = FramePolicy(model, target_frame, frame_dt, kp=kp, kd=kd, limit=limit, metric=metric)
+        rng = np.random.default_rng(seed)
+        calibration, target_keypoints = None, target_frame
+        if observe == "state":
+            calibration = _calibrate(mujoco, setup, data, renderer, model, view, rng)
+            if target is None:
+                # the upright posture through the same map as the state: the estimator's own reading
+                # of the target frame differs from it by the calibration's residual there
+                target_keypoints = _calibrated(calibration, view.to_image(target_world))
+        policy = FramePolicy(model, target_keypoints, frame_dt, kp=kp, kd=kd, limit=limit, metric=metric)
         physics = setup.model
         physics.opt.timestep = physics_dt
         physics.opt.integrator = mujoco.mjtIntegrator.mjINT_RK4
-        rng = np.random.default_rng(seed)
-        calibration = None
-        if observe == "state":
-            calibration = _calibrate(mujoco, setup, data, renderer, model, view, rng)
         qpos0 = np.tile(hanging, (runs, 1))
         hinge_dofs = [physics.jnt_qposadr[j] for j in range(physics.njnt) if physics.jnt_type[j] == _HINGE]
         qpos0[:, hinge_dofs] += rng.uniform(-perturbation, perturbation, size=(runs, len(hinge_dofs)))
@@ -420,7 +427,12 @@ def _model_state(mujoco, scene, data, view, calibration) -> tuple[np.ndarray, np
     h = 1e-6
     xd = (view.to_image(true + h * velocity) - view.to_image(true - h * velocity)) / (2 * h)
     # the learnt keypoint need not sit on the true one
-    return calibration[0] @ view.to_image(true).reshape(-1) + calibration[1], calibration[0] @ xd.reshape(-1)
+    return _calibrated(calibration, view.to_image(true)), calibration[0] @ xd.reshape(-1)
+
+
+def _calibrated(calibration, keypoints) -> np.ndarray:
+    """True keypoints `(K, 2)` in the image frame -> the model's keypoint frame `(2K,)`."""
+    return calibration[0] @ np.asarray(keypoints).reshape(-1) + calibration[1]
 
 
 def target_linearisation(
@@ -438,7 +450,8 @@ def target_linearisation(
     linearised there. Says whether energy shaping on `model` can hold the target at all.
 
     The controller is `swing_up`'s with `observe="state"` (true keypoints and velocities mapped into
-    the model's keypoint frame by the same affine calibration): near the target the frames' estimate
+    the model's keypoint frame by the same affine calibration, the target the calibrated upright
+    posture): near the target the frames' estimate
     adds noise, not a different map. MuJoCo's joint accelerations under that control are differenced
     centrally (`step` in joint units) in positions and velocities about the upright posture at rest,
     giving the closed loop's matrix `[[0, I], [dqacc/dq, dqacc/dqvel]]`; an eigenvalue with a positive
@@ -472,10 +485,11 @@ def target_linearisation(
         data.qpos[:] = upright
         data.qvel[:] = 0.0
         mujoco.mj_forward(physics, data)
-        renderer.update_scene(data, camera=setup.camera)
+        upright_keypoints = view.to_image(_true_keypoints(setup, data))
         frame_dt = float(physics.opt.timestep) * protocol.steps_per_frame
-        policy = FramePolicy(model, renderer.render().copy(), frame_dt, kp=kp, kd=kd, metric=metric)
         calibration = _calibrate(mujoco, setup, data, renderer, model, view, np.random.default_rng(seed))
+        target = _calibrated(calibration, upright_keypoints)
+        policy = FramePolicy(model, target, frame_dt, kp=kp, kd=kd, metric=metric)
     finally:
         renderer.close()
     dtype = policy.target.dtype

@@ -206,10 +206,12 @@ def test_render_train_evaluate(tmp_path, capsys):
         pairs = zip(jax.tree.leaves(getattr(trained_nc, part)), jax.tree.leaves(getattr(autoencoder, part)))
         for a, b in pairs:
             np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+    assert spec["schedule"]["dynamics_learning_rate"] == 0.001  # the networks' rate by default
     # the structured dynamics (no networks) from the same autoencoder, its stages at their own rate
+    # (by default 1e-2 for this kind)
     structured = ablation[:4] + [tmp_path / "structured"] + ablation[5:]
     structured[structured.index("nc")] = "keycld-structured"
-    status, _, err = _run(capsys, structured + ["--networks-from", model, "--dynamics-lr", 0.01])
+    status, _, err = _run(capsys, structured + ["--networks-from", model])
     assert status == 0, err
     trained_structured, spec = keyvision.load_model(tmp_path / "structured")
     assert spec["dynamics"]["kind"] == "keycld-structured"

@@ -163,6 +163,24 @@ def test_target_linearisation_without_control_is_the_free_pendulum_at_upright():
 
 
 @pytest.mark.mujoco
+def test_the_state_variant_aims_at_the_upright_posture_in_its_own_coordinates():
+    # with the true state, the target is the upright posture through the same calibration as the
+    # state: at rest there, position and velocity errors are zero, and a model without a potential
+    # commands nothing whatever the gains. The untrained estimator's reading of the upright frame is
+    # off that map by the fit's residual, so a target taken from the frame would pull with kp.
+    import equinox as eqx
+
+    model = eqx.tree_at(lambda m: m.dynamics.potential, _tiny_pendulum(), None)
+    free = keyvision.target_linearisation(model, "keycld/pendulum", kp=0.0, kd=0.0)
+    shaped = keyvision.target_linearisation(model, "keycld/pendulum", kp=5.0, kd=2.0)
+    assert shaped["control_at_target"] == pytest.approx([0.0], abs=1e-5)
+    assert abs(shaped["largest_real_part"] - free["largest_real_part"]) > 1e-3  # the gains act
+    result = keyvision.swing_up(model, "keycld/pendulum", observe="state", runs=1, duration=0.04, kp=5.0)
+    frame_target = keyvision.image_target(model, result["target_frame"])
+    assert np.linalg.norm(np.asarray(frame_target) - result["target_keypoints"]) > 1e-3
+
+
+@pytest.mark.mujoco
 def test_control_command_refuses_a_target_of_the_wrong_size(tmp_path, capsys):
     imageio = pytest.importorskip("imageio.v3")
     target = tmp_path / "target.png"

@@ -29,6 +29,9 @@ from ._common import MODEL_NAME, SPEC_NAME, frames_file
 _STAGE_FILES = (("checkpoint", "eqx"), ("history", "json"), ("model", "eqx"), ("keypoints", "npz"))
 _VALIDATION_RUNS = 4  # validated in one call at every checkpoint: a few runs suffice
 _COLLOCATION_FRAMES = 5  # the collocation loss's central differences of central differences
+# the structured model's masses, gravity weights and gears: a few physical parameters, orders of
+# magnitude from their initial values, which Adam at the networks' rate takes thousands of steps to reach
+STRUCTURED_DYNAMICS_LR = 1e-2
 
 
 def register(subparsers) -> None:
@@ -112,9 +115,10 @@ def register(subparsers) -> None:
     parser.add_argument(
         "--dynamics-lr",
         type=positive(),
-        default=default.dynamics_learning_rate,
-        help="peak learning rate of the dynamics stages (b) and (d) (the structured model's few "
-        "parameters take 1e-2)",
+        default=None,
+        help=f"peak learning rate of the dynamics stages (b) and (d) (default: {default.dynamics_learning_rate:g}; "
+        f"{STRUCTURED_DYNAMICS_LR:g} for keycld-structured, whose few physical parameters move slowly at the "
+        "networks' rate)",
     )
     parser.add_argument(
         "--warmup-steps",
@@ -236,6 +240,17 @@ def _model_spec(args: argparse.Namespace, frames) -> dict:
     }
 
 
+def _dynamics_lr(args: argparse.Namespace) -> float:
+    """`--dynamics-lr`, or its default for `--model`."""
+    if args.dynamics_lr is not None:
+        return args.dynamics_lr
+    if args.model == "keycld-structured":
+        return STRUCTURED_DYNAMICS_LR
+    from keyvision import Schedule
+
+    return Schedule().dynamics_learning_rate
+
+
 def _check_frames(args: argparse.Namespace, frames) -> None:
     if args.joint_steps and args.window > frames.num_frames:
         raise CommandError(f"--window {args.window}: longer than the runs' {frames.num_frames} frames")
@@ -347,7 +362,7 @@ def run(args: argparse.Namespace) -> int:
         window=args.window,
         learning_rate=args.lr,
         joint_learning_rate=args.joint_lr,
-        dynamics_learning_rate=args.dynamics_lr,
+        dynamics_learning_rate=_dynamics_lr(args),
         warmup_steps=args.warmup_steps,
         autoencoder_batch=args.autoencoder_batch,
         rigid_steps=args.rigid_steps,
