@@ -116,9 +116,9 @@ def register(subparsers) -> None:
         "--dynamics-lr",
         type=positive(),
         default=None,
-        help=f"peak learning rate of the dynamics stages (b) and (d) (default: {default.dynamics_learning_rate:g}; "
-        f"{STRUCTURED_DYNAMICS_LR:g} for keycld-structured, whose few physical parameters move slowly at the "
-        "networks' rate)",
+        help="peak learning rate of the dynamics stages (b) and (d) (default: "
+        f"{default.dynamics_learning_rate:g}; {STRUCTURED_DYNAMICS_LR:g} for keycld-structured, whose few "
+        "physical parameters move slowly at the networks' rate)",
     )
     parser.add_argument(
         "--warmup-steps",
