@@ -5,7 +5,8 @@ by `keyvision train` with the same recipe (`benchmarks/vision.py`'s options) and
 `keyvision evaluate` on the 50 validation runs:
 
 - KeyCLD, `--seeds` seeds (each its own autoencoder);
-- KeyCLD-NC (no constraints), NODE2 (a second-order neural ODE) and KeyCLD with coupled constant masses:
+- KeyCLD-NC (no constraints), NODE2 (a second-order neural ODE), KeyCLD with coupled constant masses and
+  the structured model (coupled masses, a linear potential, joint motors; no networks in the dynamics):
   the dynamics differ, the estimator and renderer do not, so these start from the autoencoder stage of
   KeyCLD's first seed (`keyvision train --networks-from`) and their training time counts that stage;
 - FC: KeyCLD's dynamics with the FC estimator and renderer (`--networks fc`, its own autoencoder).
@@ -57,6 +58,7 @@ PAPER = {
 # row -> the `keyvision train` options that make it, and whether it shares KeyCLD's autoencoder
 VARIANTS = {
     "KeyCLD coupled mass": (["--model", "keycld-coupled"], True),
+    "KeyCLD structured": (["--model", "keycld-structured"], True),
     "KeyCLD-NC": (["--model", "nc"], True),
     "NODE2": (["--model", "node2"], True),
     "FC": (["--networks", "fc"], False),

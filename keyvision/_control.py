@@ -451,11 +451,11 @@ def target_linearisation(
 
     The controller is `swing_up`'s with `observe="state"` (true keypoints and velocities mapped into
     the model's keypoint frame by the same affine calibration, the target the calibrated upright
-    posture): near the target the frames' estimate
-    adds noise, not a different map. MuJoCo's joint accelerations under that control are differenced
-    centrally (`step` in joint units) in positions and velocities about the upright posture at rest,
-    giving the closed loop's matrix `[[0, I], [dqacc/dq, dqacc/dqvel]]`; an eigenvalue with a positive
-    real part means the target is unstable in truth, whatever the learnt model predicts. Beside it,
+    posture): near the target the frames' estimate adds noise, not a different map. MuJoCo's joint
+    accelerations under that control are differenced centrally (`step` in joint units) in positions
+    and velocities about the upright posture at rest, giving the closed loop's matrix
+    `[[0, I], [dqacc/dq, dqacc/dqvel]]`; an eigenvalue with a positive real part means the target is
+    unstable in truth, whatever the learnt model predicts. Beside it,
     the scene's own gravity rates at the target: the eigenvalues of `M^-1 G` (`G` the destabilising
     stiffness of gravity, `-d qfrc_bias / dq`, `M` the joint mass matrix). With `metric="mass"` and
     exact masses, the shaped spring holds a learnt potential whose curvature along a mode is wrong
