@@ -18,11 +18,12 @@ the ground truth stored beside the frames (never used for training). For one sce
    MuJoCo's (`keyvision.target_linearisation`). Energy shaping with `kp = 5` holds the target only
    while the learnt rates are within `kp` of the truth.
 
-Writes benchmarks/results/vision_geometry_<scene>.json, .md and .png (each joint coordinate's error
-against its true value); prints the JSON.
+Writes benchmarks/results/vision_geometry_<name>.json, .md and .png (each joint coordinate's error
+against its true value; `--name`: the model directory's name by default); prints the JSON.
 
     python benchmarks/vision_geometry.py --scene acrobot \
         --model benchmarks/results/vision_models/acrobot-structured --data runs/acrobot-data
+    # writes vision_geometry_acrobot-structured.{json,md,png}
 """
 
 import argparse
@@ -90,7 +91,7 @@ def _plot(path, joints, q_true, q_est, warp) -> None:
     plt.close(figure)
 
 
-def run(scene: str, model_dir: pathlib.Path, data: pathlib.Path, steps: int, seed: int) -> dict:
+def run(scene: str, model_dir: pathlib.Path, data: pathlib.Path, steps: int, seed: int, name: str) -> dict:
     import equinox as eqx
     import jax
     import jax.numpy as jnp
@@ -151,7 +152,7 @@ def run(scene: str, model_dir: pathlib.Path, data: pathlib.Path, steps: int, see
             }
         )
 
-    _plot(RESULTS / f"vision_geometry_{scene}.png", joints, q_true, q_est, warp)
+    _plot(RESULTS / f"vision_geometry_{name}.png", joints, q_true, q_est, warp)
 
     # 2. the structured dynamics fitted to each set of keypoints
     mujoco = _control._mujoco()
@@ -219,8 +220,10 @@ def main() -> None:
     parser.add_argument("--data", required=True, help="its training frames (frames.npz or its folder)")
     parser.add_argument("--steps", type=int, default=2000, help="steps of each of the two fits")
     parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--name", help="the results' name (default: the model directory's)")
     args = parser.parse_args()
-    row = run(args.scene, pathlib.Path(args.model), pathlib.Path(args.data), args.steps, args.seed)
+    name = args.name or pathlib.Path(args.model).resolve().name
+    row = run(args.scene, pathlib.Path(args.model), pathlib.Path(args.data), args.steps, args.seed, name)
     result = {"machine": machine(), **row}
     lines = [
         f"# Keypoint geometry of a model learnt from images: {args.scene}",
@@ -253,7 +256,7 @@ def main() -> None:
     for fit in row["fits"]:
         rates = ", ".join(f"{r:.2f}" for r in fit["gravity_rates_at_upright"])
         lines.append(f"| {fit['keypoints']} | {rates} | {100 * fit['relative_error_of_fastest']:+.1f}% |")
-    write(f"vision_geometry_{args.scene}", result, "\n".join(lines) + "\n")
+    write(f"vision_geometry_{name}", result, "\n".join(lines) + "\n")
 
 
 if __name__ == "__main__":
