@@ -8,7 +8,8 @@ the ground truth stored beside the frames (never used for training). For one sce
    that the scene keeps constant vary along the data (relative standard deviation), and each joint
    coordinate of `cldyn.keycld_joints(scene)` read from the estimator's keypoints minus the same
    coordinate read from MuJoCo's, by the true coordinate's value (a warp: a systematic error that an
-   affine map cannot remove).
+   affine map cannot remove); for each hinge, where the estimator puts its child segment's head in the
+   true segment's frame (along and across it, in segment lengths, after the estimator's overall scale).
 2. The structured dynamics (`cldyn.keycld_model(..., mass="coupled", potential="gravity",
    joints=keycld_joints(scene))`, exact for rigid bodies in uniform gravity) fitted with the recipe
    of `keyvision train`'s dynamics stages (collocation, then multiple shooting over half a run, peak
@@ -121,6 +122,7 @@ def run(scene: str, model_dir: pathlib.Path, data: pathlib.Path, steps: int, see
     affine, *_ = np.linalg.lstsq(design, flat_est, rcond=None)
     residual = (design @ affine - flat_est).reshape(flat_est.shape[0], -1, 2)
     residual_px = (np.linalg.norm(residual, axis=-1).mean(axis=0) * pixels).tolist()
+    scale = float((flat_est * flat_true).sum() / (flat_true * flat_true).sum())  # the estimator's size
     constraint = cldyn.keycld_constraint(scene)
     drift = {}
     for source, x in (("mujoco", flat_true), ("estimator", flat_est)):
@@ -141,16 +143,33 @@ def run(scene: str, model_dir: pathlib.Path, data: pathlib.Path, steps: int, see
             unit = "image units"
         index = np.clip(np.digitize(q_true[:, j], edges) - 1, 0, BINS - 1)
         means = [float(error[index == b].mean()) if (index == b).any() else None for b in range(BINS)]
-        warp.append(
-            {
-                "joint": f"{j}: {type(joint).__name__}",
-                "unit": unit,
-                "rms": float(np.sqrt(np.mean(error**2))),
-                "bin_edges": edges.tolist(),
-                "mean_error_by_value": means,
-                "largest_bin_mean": float(max(abs(m) for m in means if m is not None)),
-            }
-        )
+        record = {
+            "joint": f"{j}: {type(joint).__name__}",
+            "unit": unit,
+            "rms": float(np.sqrt(np.mean(error**2))),
+            "bin_edges": edges.tolist(),
+            "mean_error_by_value": means,
+            "largest_bin_mean": float(max(abs(m) for m in means if m is not None)),
+        }
+        if isinstance(joint, cldyn.HingeAngle) and joint.child[1] is not None:
+            # where the estimator puts the child segment's head, in the true segment's frame (from
+            # its true tail, along it and across it, in segment lengths), after the similarity scale
+            tail, head = (
+                np.broadcast_to(np.asarray(joint.pivot), (flat_true.shape[0], 2)) if i is None
+                else flat_true[:, 2 * i : 2 * i + 2]
+                for i in joint.child
+            )
+            estimated_head = flat_est[:, 2 * joint.child[1] : 2 * joint.child[1] + 2] / scale
+            length = np.linalg.norm(head - tail, axis=1, keepdims=True)
+            along = (head - tail) / length
+            across = np.stack([-along[:, 1], along[:, 0]], axis=1)
+            offset = estimated_head - tail
+            for key, axis in (("head_along_by_value", along), ("head_across_by_value", across)):
+                share = (offset * axis).sum(axis=1) / length[:, 0]
+                record[key] = [
+                    float(share[index == b].mean()) if (index == b).any() else None for b in range(BINS)
+                ]
+        warp.append(record)
 
     _plot(RESULTS / f"vision_geometry_{name}.png", joints, q_true, q_est, warp)
 
@@ -204,6 +223,7 @@ def run(scene: str, model_dir: pathlib.Path, data: pathlib.Path, steps: int, see
         "affine_residual_px": residual_px,
         "noise_sigma_px": sigma * pixels,
         "constraint_relative_std": drift,
+        "similarity_scale": scale,
         "joint_warp": warp,
         "mujoco_gravity_rates": true_rates,
         "curvature_tolerance": float(5.0 / true_rates[0]),
@@ -237,11 +257,14 @@ def main() -> None:
         + ", ".join(f"{100 * v:.1f}%" for v in row["constraint_relative_std"]["mujoco"])
         + ").",
         "",
-        "| joint | error rms | largest mean error in a bin of the true value | unit |",
-        "| --- | --- | --- | --- |",
+        "| joint | error rms | largest mean error in a bin of the true value | unit | child's head across "
+        "its true segment, by bin (segment lengths) |",
+        "| --- | --- | --- | --- | --- |",
     ]
     for warp in row["joint_warp"]:
-        cells = (warp["joint"], f"{warp['rms']:.3g}", f"{warp['largest_bin_mean']:.3g}", warp["unit"])
+        across = warp.get("head_across_by_value")
+        across = "-" if across is None else " ".join("-" if a is None else f"{a:+.3f}" for a in across)
+        cells = (warp["joint"], f"{warp['rms']:.3g}", f"{warp['largest_bin_mean']:.3g}", warp["unit"], across)
         lines.append("| " + " | ".join(cells) + " |")
     lines += [
         "",
