@@ -99,8 +99,9 @@ class Schedule:
     - `augment`: show the estimator every frame of stages (a) and (c) under a random dihedral
       transform (`keyvision.Augment`), its keypoints mapped back: trains an equivariant estimator.
     - `learning_rate`: Adam's peak learning rate for the networks in stage (a) (after element-wise
-      gradient clipping at 5); `dynamics_learning_rate` for stage (b), `joint_learning_rate` for
-      stage (c).
+      gradient clipping at 5); `dynamics_learning_rate` for stages (b) and (d), `joint_learning_rate` for
+      stage (c). Dynamics without networks (the structured model: masses, gravity weights, gears)
+      want `dynamics_learning_rate=1e-2`, which `keyvision train --model keycld-structured` chooses.
     - `warmup_steps`, `final_learning_rate`: every stage starts a fresh Adam, so its learning rate
       rises linearly from 0 over `warmup_steps` (at most a tenth of the stage) and then decays along
       a cosine to `final_learning_rate` times its peak at the stage's last step. Without the warm-up,
