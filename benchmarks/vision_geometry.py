@@ -106,10 +106,9 @@ def run(scene: str, model_dir: pathlib.Path, data: pathlib.Path, steps: int, see
     model, _ = keyvision.load_model(model_dir)
     frames = keyvision.Frames.load(data / "frames.npz" if data.is_dir() else data)
     train, _ = frames.split()
-    encode = eqx.filter_jit(lambda m, z: jax.vmap(m.encode)(z))
     started = time.perf_counter()
-    images = train.images(np.float32)
-    estimated = np.stack([np.asarray(encode(model, run)) for run in images]).astype(np.float64)
+    sequences = keyvision.ImageSequences.from_frames(train)
+    estimated = np.asarray(keyvision.encode_sequences(model, sequences).x, np.float64)
     points = train.extras["keypoints"]
     truth = train.camera.to_image(points.reshape(*points.shape[:2], -1, 2)).reshape(*points.shape[:2], -1)
     k = truth.shape[-1]

@@ -107,7 +107,7 @@ def _deserialise(path: pathlib.Path, like):
 def _load_stage(directory: pathlib.Path, spec: dict, like: KeyCLD, stage: str) -> KeyCLD:
     """The model as `keyvision.train` left it after `stage`, from the stages' `model-<stage>.eqx`."""
     from ._assign import renumbered
-    from ._train import ORDER_NAME, stages_run
+    from ._train import ORDER_NAME, read_order, stages_run
 
     stages = stages_run(spec.get("schedule") or {})
     if stage not in stages:
@@ -129,14 +129,14 @@ def _load_stage(directory: pathlib.Path, spec: dict, like: KeyCLD, stage: str) -
     if "dynamics" in after and "rigid" not in done and model.num_keypoints > 1:
         order_path = directory / ORDER_NAME
         try:
-            order = json.loads(order_path.read_text())["keypoint_order"]
+            order = read_order(order_path)
         except FileNotFoundError:
             raise FileNotFoundError(
                 f"{order_path}: no such file (trained before the keypoint order was recorded); stage "
                 f"{stage!r} cannot be rebuilt"
             ) from None
-        except (OSError, UnicodeDecodeError, json.JSONDecodeError, KeyError, TypeError) as error:
-            raise ValueError(f"{order_path}: unreadable keypoint order ({error!r})") from None
+        except ValueError as error:
+            raise ValueError(f"{order_path}: unreadable keypoint order ({error})") from None
         if list(order) != list(range(model.num_keypoints)):
             model = renumbered(model, order)
     if after:

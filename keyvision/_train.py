@@ -316,6 +316,17 @@ def _assign(model: KeyCLD, keypoints: cldyn.Sequences, out: pathlib.Path | None)
     return model, order
 
 
+def read_order(path: pathlib.Path) -> tuple:
+    """The keypoint order that `_assign` recorded in `path`: a `FileNotFoundError` if there is none,
+    a `ValueError` (holding the reason) if it cannot be read."""
+    try:
+        return tuple(json.loads(path.read_text())["keypoint_order"])
+    except FileNotFoundError:
+        raise
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError, KeyError, TypeError) as error:
+        raise ValueError(repr(error)) from None
+
+
 def _rigid_order(model: KeyCLD, data: ImageSequences, out: pathlib.Path | None, resume: bool):
     """The rigid stage's numbering: on resume, once that stage has checkpointed, the order it
     recorded (the networks it fitted were numbered so; encoding every training frame again would
@@ -324,10 +335,10 @@ def _rigid_order(model: KeyCLD, data: ImageSequences, out: pathlib.Path | None, 
     if not (resume and path is not None and fit_files(out, "rigid")["checkpoint"].exists()):
         return _assign(model, encode_sequences(model, data), out)
     try:
-        order = tuple(json.loads(path.read_text())["keypoint_order"])
+        order = read_order(path)
         valid = sorted(order) == list(range(model.num_keypoints))
-    except (OSError, UnicodeDecodeError, json.JSONDecodeError, KeyError, TypeError) as error:
-        order, valid = repr(error), False
+    except (OSError, ValueError, TypeError) as error:  # absent, unreadable, or entries that do not sort
+        order, valid = error, False
     if not valid:
         raise cldyn.CheckpointError(
             f"{path}: not the keypoint order of {model.num_keypoints} keypoints that the checkpoint of "
