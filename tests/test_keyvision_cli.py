@@ -179,14 +179,15 @@ def test_render_train_evaluate(tmp_path, capsys):
     status, _, err = _run(capsys, train)
     assert status == 2 and "--resume" in _error_line(err, "train")
     status, _, err = _run(capsys, train + ["--resume", "--lr", 0.01])
-    assert status == 2 and "options differ" in _error_line(err, "train")
+    line = _error_line(err, "train")  # names the option that differs, with both values, and no other
+    assert status == 2 and "options differ" in line and "(schedule.learning_rate 0.001 -> 0.01)" in line
     # more rounds extend a finished training (here rounds without steps: nothing more to run) ...
     status, out, err = _run(capsys, train + ["--resume", "--rounds", 3])
     assert status == 0, err
     assert json.loads((model / "keyvision.json").read_text())["schedule"]["rounds"] == 3
     # ... and fewer would drop finished rounds: refused
     status, _, err = _run(capsys, train + ["--resume", "--rounds", 2])
-    assert status == 2 and "options differ" in _error_line(err, "train")
+    assert status == 2 and "(schedule.rounds 3 -> 2)" in _error_line(err, "train")
 
     # an ablation of the dynamics starting from this training's autoencoder: stage (a) is not run again
     import jax

@@ -6,6 +6,7 @@ line refuse the same values with the same words.
 """
 
 import argparse
+import json
 import math
 import os
 import pathlib
@@ -15,6 +16,16 @@ from collections.abc import Callable
 from .._misc import check_fraction, check_positive
 
 INTERRUPTED = 130  # the exit status of a command stopped by Ctrl-C (128 + SIGINT)
+
+
+def differences(old, new, prefix: str = "") -> list[str]:
+    """`name old -> new` for every setting that differs between two records of a command's options
+    (nested names joined by dots; a record's `previous` settings left out), so that a refused
+    `--resume` names what to give."""
+    if isinstance(old, dict) and isinstance(new, dict):
+        names = [n for n in {**old, **new} if n != "previous"]
+        return [d for n in names for d in differences(old.get(n), new.get(n), f"{prefix}{n}.")]
+    return [] if old == new else [f"{prefix.rstrip('.')} {json.dumps(old)} -> {json.dumps(new)}"]
 
 
 class CommandError(Exception):

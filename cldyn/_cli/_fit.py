@@ -16,6 +16,7 @@ from ._common import (
     INTERRUPTED,
     CommandError,
     add_command,
+    differences,
     finite,
     input_file,
     output_directory,
@@ -227,14 +228,6 @@ def _previous_spec(args: argparse.Namespace, path) -> dict | None:
     return previous
 
 
-def _differences(old, new, prefix: str = "") -> list[str]:
-    """`name: old -> new` for every setting that differs, nested names joined by dots."""
-    if isinstance(old, dict) and isinstance(new, dict):
-        names = [n for n in {**old, **new} if n != "previous"]
-        return [d for n in names for d in _differences(old.get(n), new.get(n), f"{prefix}{n}.")]
-    return [] if old == new else [f"{prefix.rstrip('.')} {json.dumps(old)} -> {json.dumps(new)}"]
-
-
 def _resume_command(args: argparse.Namespace, *, force: bool) -> str:
     argv = [a for a in args.argv if a != "--overwrite"]
     argv += [flag for flag in ("--resume",) + (("--force",) if force else ()) if flag not in argv]
@@ -322,7 +315,7 @@ def run(args: argparse.Namespace) -> int:
         "validation_runs": args.validation_runs,
         "dtype": "float32",
     }
-    changed = [] if previous is None else _differences(previous, json.loads(json.dumps(spec)))
+    changed = [] if previous is None else differences(previous, json.loads(json.dumps(spec)))
     if changed and not args.force:
         raise CommandError(
             f"--resume: the options differ from those of the fit in {path} ({'; '.join(changed)}); "

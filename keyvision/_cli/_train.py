@@ -16,6 +16,7 @@ from cldyn._cli._common import (
     INTERRUPTED,
     CommandError,
     add_command,
+    differences,
     output_directory,
     positive,
     refuse_existing,
@@ -401,7 +402,8 @@ def run(args: argparse.Namespace) -> int:
             changed = []  # further rounds continue a training (finished or not): stages already run stay
         if changed:
             raise CommandError(
-                f"--resume: the options differ from those of the training in {out} ({', '.join(changed)}); "
+                f"--resume: the options differ from those of the training in {out} "
+                f"({'; '.join(differences(previous, spec))}); "
                 "resume with the same options or start afresh in another --out"
             )
     model_key, train_key = jax.random.split(jax.random.key(args.seed))
