@@ -100,8 +100,11 @@ class Schedule:
       transform (`keyvision.Augment`), its keypoints mapped back: trains an equivariant estimator.
     - `learning_rate`: Adam's peak learning rate for the networks in stage (a) (after element-wise
       gradient clipping at 5); `dynamics_learning_rate` for stages (b) and (d), `joint_learning_rate` for
-      stage (c). Dynamics without networks (the structured model: masses, gravity weights, gears)
-      want `dynamics_learning_rate=1e-2`, which `keyvision train --model keycld-structured` chooses.
+      stage (c). `dynamics_learning_rate=None` (the default) is chosen by `keyvision.train` from the
+      model's dynamics: 1e-3 where they hold networks (`eqx.nn.Linear` layers: KeyCLD's, the
+      ablations'), 1e-2 where they hold none (the structured model's few physical parameters,
+      masses, gravity weights and gears, move slowly at the networks' rate); the chosen value is the
+      one recorded.
     - `warmup_steps`, `final_learning_rate`: every stage starts a fresh Adam, so its learning rate
       rises linearly from 0 over `warmup_steps` (at most a tenth of the stage) and then decays along
       a cosine to `final_learning_rate` times its peak at the stage's last step. Without the warm-up,
@@ -138,7 +141,7 @@ class Schedule:
     constraint_drift: str = "window"
     augment: bool = False
     learning_rate: float = 1e-3
-    dynamics_learning_rate: float = 1e-3
+    dynamics_learning_rate: float | None = None
     joint_learning_rate: float = 3e-4
     warmup_steps: int = 100
     final_learning_rate: float = 0.1
@@ -152,7 +155,8 @@ class Schedule:
                      "rounds", "log_every", "checkpoint_every"):
             check_positive(f"Schedule: {name}", getattr(self, name), integer=True)
         for name in ("learning_rate", "dynamics_learning_rate", "joint_learning_rate", "final_learning_rate"):
-            check_positive(f"Schedule: {name}", getattr(self, name))
+            if name != "dynamics_learning_rate" or self.dynamics_learning_rate is not None:
+                check_positive(f"Schedule: {name}", getattr(self, name))
         check_positive("Schedule: warmup_steps", self.warmup_steps, integer=True, allow_zero=True)
         if self.final_learning_rate > 1:
             raise ValueError(
@@ -188,6 +192,21 @@ class Schedule:
             value = getattr(self, name)
             described[name] = None if value is None else eqx.tree_pformat(value)
         return described
+
+
+NETWORKS_DYNAMICS_LR = 1e-3  # the dynamics stages' peak learning rate for dynamics with networks
+PHYSICAL_DYNAMICS_LR = 1e-2  # ... and for dynamics without any (physical parameters only)
+
+
+def for_dynamics(schedule: Schedule, dynamics) -> Schedule:
+    """`schedule` with its `dynamics_learning_rate` chosen for `dynamics` where it is `None`:
+    `NETWORKS_DYNAMICS_LR` if they hold an `eqx.nn.Linear` layer, `PHYSICAL_DYNAMICS_LR` if not."""
+    if schedule.dynamics_learning_rate is not None:
+        return schedule
+    is_linear = lambda node: isinstance(node, eqx.nn.Linear)  # noqa: E731
+    networks = any(is_linear(node) for node in jax.tree.leaves(dynamics, is_leaf=is_linear))
+    rate = NETWORKS_DYNAMICS_LR if networks else PHYSICAL_DYNAMICS_LR
+    return dataclasses.replace(schedule, dynamics_learning_rate=rate)
 
 
 def joint_stage(recipe: dict, steps: int) -> Schedule:
@@ -435,7 +454,8 @@ def train(
     `keypoints-<stage>.npz`, the encoded keypoints they fit), float32, the batch sharded over
     `devices`. With `resume=True` a restarted call skips the finished stages and resumes the
     interrupted one bitwise, on the keypoints it started with (a GPU need not encode the frames
-    bitwise alike twice). `out/train.json` records the key and the schedule.
+    bitwise alike twice). `out/train.json` records the key and the schedule (with the dynamics'
+    learning rate as chosen).
 
     **Arguments:**
 
@@ -472,6 +492,7 @@ def train(
             "train: the rigid stage (Schedule.rigid_steps) needs dynamics with constraints, got "
             f"{type(model.dynamics).__name__} without any"
         )
+    schedule = for_dynamics(schedule, model.dynamics)
     keys = dict(zip(_STAGES, jax.random.split(key, 3)))
     if out is not None:
         out = pathlib.Path(out)

@@ -329,6 +329,37 @@ def _reconstruction(model, data):
     return keyvision.Reconstruction()(model, data)
 
 
+def test_the_dynamics_stages_take_the_rate_their_dynamics_want_unless_told(tmp_path):
+    # the structured dynamics (no networks) by default at 1e-2, KeyCLD's networks at 1e-3 (the CLI
+    # test checks the same record for `nc`). One step of stage (b), no warm-up: Adam's first update
+    # is the learning rate times sign(gradient) for every parameter with a gradient
+    keys = jax.random.split(jax.random.key(0), 3)
+    frames, controls, _ = pendulum_frames(4, 8)
+    data = keyvision.ImageSequences(frames, controls, DT)
+    structured = cldyn.keycld_model(
+        2, 1, cldyn.keycld_constraint("pendulum"), key=keys[1], mass="coupled", potential="gravity",
+        joints=cldyn.keycld_joints("pendulum"),
+    )
+    networks = _model(keys[0])
+    model = _cast(eqx.tree_at(lambda m: m.dynamics, networks, structured), jnp.float32)
+    one_step = keyvision.Schedule(autoencoder_steps=0, dynamics_steps=1, dynamics_batch=4, joint_steps=0,
+                                  refit_steps=0, log_every=1)
+    told = dataclasses.replace(one_step, dynamics_learning_rate=3e-3)
+    for schedule, rate in ((one_step, 1e-2), (told, 3e-3)):
+        out = tmp_path / str(rate)
+        result = keyvision.train(model, data, key=jax.random.key(1), schedule=schedule, out=out)
+        record = json.loads((out / "train.json").read_text())
+        assert record["schedule"]["dynamics_learning_rate"] == rate
+        before = jax.tree.leaves(eqx.filter(model.dynamics, eqx.is_inexact_array))
+        after = jax.tree.leaves(eqx.filter(result.model.dynamics, eqx.is_inexact_array))
+        step = max(float(np.max(np.abs(a - b))) for a, b in zip(after, before, strict=True))
+        assert step == pytest.approx(rate, rel=1e-3)
+    chosen = keyvision_train.for_dynamics(keyvision.Schedule(), networks.dynamics)
+    assert chosen.dynamics_learning_rate == 1e-3
+    with pytest.raises(ValueError, match="dynamics_learning_rate"):
+        keyvision.Schedule(dynamics_learning_rate=0.0)
+
+
 def _assert_bitwise_equal(a, b):
     leaves_a = jax.tree.leaves(eqx.filter(a, eqx.is_array))
     leaves_b = jax.tree.leaves(eqx.filter(b, eqx.is_array))

@@ -30,14 +30,12 @@ from ._common import MODEL_NAME, SPEC_NAME, frames_file
 _STAGE_FILES = (("checkpoint", "eqx"), ("history", "json"), ("model", "eqx"), ("keypoints", "npz"))
 _VALIDATION_RUNS = 4  # validated in one call at every checkpoint: a few runs suffice
 _COLLOCATION_FRAMES = 5  # the collocation loss's central differences of central differences
-# the structured model's masses, gravity weights and gears: a few physical parameters, orders of
-# magnitude from their initial values, which Adam at the networks' rate takes thousands of steps to reach
-STRUCTURED_DYNAMICS_LR = 1e-2
 
 
 def register(subparsers) -> None:
     """Add `keyvision train`."""
     from keyvision import Schedule
+    from keyvision._train import NETWORKS_DYNAMICS_LR, PHYSICAL_DYNAMICS_LR
 
     default = Schedule()
     parser = add_command(
@@ -118,7 +116,7 @@ def register(subparsers) -> None:
         type=positive(),
         default=None,
         help="peak learning rate of the dynamics stages (b) and (d) (default: "
-        f"{default.dynamics_learning_rate:g}; {STRUCTURED_DYNAMICS_LR:g} for keycld-structured, whose few "
+        f"{NETWORKS_DYNAMICS_LR:g}; {PHYSICAL_DYNAMICS_LR:g} for keycld-structured, whose few "
         "physical parameters move slowly at the networks' rate)",
     )
     parser.add_argument(
@@ -241,17 +239,6 @@ def _model_spec(args: argparse.Namespace, frames) -> dict:
     }
 
 
-def _dynamics_lr(args: argparse.Namespace) -> float:
-    """`--dynamics-lr`, or its default for `--model`."""
-    if args.dynamics_lr is not None:
-        return args.dynamics_lr
-    if args.model == "keycld-structured":
-        return STRUCTURED_DYNAMICS_LR
-    from keyvision import Schedule
-
-    return Schedule().dynamics_learning_rate
-
-
 def _check_frames(args: argparse.Namespace, frames) -> None:
     if args.joint_steps and args.window > frames.num_frames:
         raise CommandError(f"--window {args.window}: longer than the runs' {frames.num_frames} frames")
@@ -345,6 +332,7 @@ def run(args: argparse.Namespace) -> int:
     import cldyn
     import keyvision
     from cldyn._misc import atomic_save, atomic_write
+    from keyvision._train import for_dynamics
 
     frames = keyvision.Frames.load(data_path)
     spec = _model_spec(args, frames)
@@ -353,6 +341,11 @@ def run(args: argparse.Namespace) -> int:
     if train_frames.num_runs == 0:
         raise CommandError(f"--data {data_path}: all {frames.num_runs} runs are for validation")
     source = None if args.networks_from is None else _networks_source(args.networks_from, spec, frames)
+    model_key, train_key = jax.random.split(jax.random.key(args.seed))
+    try:
+        model = keyvision.model_from_spec(spec, key=model_key)
+    except ValueError as error:
+        raise CommandError(f"--constraint {spec['dynamics']['constraint']}: {error}") from None
     schedule = dataclasses.replace(
         keyvision.Schedule(),
         autoencoder_steps=0 if source is not None else args.autoencoder_steps,
@@ -363,7 +356,7 @@ def run(args: argparse.Namespace) -> int:
         window=args.window,
         learning_rate=args.lr,
         joint_learning_rate=args.joint_lr,
-        dynamics_learning_rate=_dynamics_lr(args),
+        dynamics_learning_rate=args.dynamics_lr,
         warmup_steps=args.warmup_steps,
         autoencoder_batch=args.autoencoder_batch,
         rigid_steps=args.rigid_steps,
@@ -376,6 +369,7 @@ def run(args: argparse.Namespace) -> int:
         constraint_drift=args.constraint_drift,
         augment=args.augment,
     )
+    schedule = for_dynamics(schedule, model.dynamics)  # --dynamics-lr, or the default for --model
     spec.update(
         seed=args.seed,
         data={
@@ -396,7 +390,8 @@ def run(args: argparse.Namespace) -> int:
                 f"{spec_path}: unreadable ({error}); cannot check what --resume continues"
             ) from None
         if isinstance(previous.get("schedule"), dict):  # a field added since: it held its default then
-            previous["schedule"] = {**keyvision.Schedule().describe(), **previous["schedule"]}
+            defaults = for_dynamics(keyvision.Schedule(), model.dynamics).describe()
+            previous["schedule"] = {**defaults, **previous["schedule"]}
         changed = sorted(name for name in {**previous, **spec} if previous.get(name) != spec.get(name))
         if changed == ["schedule"] and _more_rounds(previous["schedule"], spec["schedule"]):
             changed = []  # further rounds continue a training (finished or not): stages already run stay
@@ -406,11 +401,6 @@ def run(args: argparse.Namespace) -> int:
                 f"({'; '.join(differences(previous, spec))}); "
                 "resume with the same options or start afresh in another --out"
             )
-    model_key, train_key = jax.random.split(jax.random.key(args.seed))
-    try:
-        model = keyvision.model_from_spec(spec, key=model_key)
-    except ValueError as error:
-        raise CommandError(f"--constraint {spec['dynamics']['constraint']}: {error}") from None
     initial = out / INITIAL_NAME
     if source is not None:
         if args.resume and initial.is_file():  # the networks this training started from, as saved then
