@@ -82,7 +82,7 @@ def _case(scene: str, joints: dict | None, seed: int, args, *, stock: bool = Fal
     inputs = keyvision.scene_actuators(spec["data"]["scene"])
     refine = None
     if args.refine_steps and (joints or stock):
-        from keyvision._train import joint_stage
+        from keyvision._identify import joint_stage
 
         refine = joint_stage(spec.get("schedule") or {}, args.refine_steps)
     started = time.perf_counter()

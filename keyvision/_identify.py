@@ -10,6 +10,7 @@ runs: only their Jacobians enter the dynamics, so a learnt model carries no leng
 
 import dataclasses
 from collections.abc import Mapping, Sequence
+from typing import TYPE_CHECKING
 
 import equinox as eqx
 import jax
@@ -19,6 +20,9 @@ from jaxtyping import ArrayLike, Float
 
 import cldyn
 from cldyn._constraint import Anchor, Distance, FixedCoordinate, Stack
+
+if TYPE_CHECKING:
+    from ._train import Schedule
 
 
 @dataclasses.dataclass(frozen=True)
@@ -537,3 +541,14 @@ def _image_errors(before, after, validation, refined=None) -> dict:
             "mse_over_time": per_frame.tolist(),
         }
     return record
+
+
+def joint_stage(recipe: dict, steps: int) -> "Schedule":
+    """The joint stage (c) of a training recipe (`keyvision.json`'s `schedule`), for `steps` steps and
+    nothing else: what `keyvision.identify(refine=)` runs after adding effects to a model."""
+    fields = ("joint_batch", "window", "joint_learning_rate", "dynamics_weight", "heatmap_weight")
+    fields += ("constraint_weight", "constraint_drift", "augment", "warmup_steps", "final_learning_rate")
+    from ._train import Schedule  # noqa: F811 (the name above is for type checkers only)
+
+    chosen = {name: recipe[name] for name in fields if recipe.get(name) is not None}
+    return Schedule(autoencoder_steps=0, dynamics_steps=0, joint_steps=steps, refit_steps=0, **chosen)

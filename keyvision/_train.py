@@ -100,11 +100,9 @@ class Schedule:
       transform (`keyvision.Augment`), its keypoints mapped back: trains an equivariant estimator.
     - `learning_rate`: Adam's peak learning rate for the networks in stage (a) (after element-wise
       gradient clipping at 5); `dynamics_learning_rate` for stages (b) and (d), `joint_learning_rate` for
-      stage (c). `dynamics_learning_rate=None` (the default) is chosen by `keyvision.train` from the
-      model's dynamics: 1e-3 where they hold networks (`eqx.nn.Linear` layers: KeyCLD's, the
-      ablations'), 1e-2 where they hold none (the structured model's few physical parameters,
-      masses, gravity weights and gears, move slowly at the networks' rate); the chosen value is the
-      one recorded.
+      stage (c); with `None` (the default) `keyvision.train` chooses and records 1e-3 for dynamics with
+      networks (`eqx.nn.Linear` layers), 1e-2 for those without (the structured model's few physical
+      parameters: masses, gravity weights and gears move slowly at the networks' rate).
     - `warmup_steps`, `final_learning_rate`: every stage starts a fresh Adam, so its learning rate
       rises linearly from 0 over `warmup_steps` (at most a tenth of the stage) and then decays along
       a cosine to `final_learning_rate` times its peak at the stage's last step. Without the warm-up,
@@ -207,15 +205,6 @@ def for_dynamics(schedule: Schedule, dynamics) -> Schedule:
     networks = any(is_linear(node) for node in jax.tree.leaves(dynamics, is_leaf=is_linear))
     rate = NETWORKS_DYNAMICS_LR if networks else PHYSICAL_DYNAMICS_LR
     return dataclasses.replace(schedule, dynamics_learning_rate=rate)
-
-
-def joint_stage(recipe: dict, steps: int) -> Schedule:
-    """The joint stage (c) of a training recipe (`keyvision.json`'s `schedule`), for `steps` steps and
-    nothing else: what `keyvision.identify(refine=)` runs after adding effects to a model."""
-    fields = ("joint_batch", "window", "joint_learning_rate", "dynamics_weight", "heatmap_weight")
-    fields += ("constraint_weight", "constraint_drift", "augment", "warmup_steps", "final_learning_rate")
-    chosen = {name: recipe[name] for name in fields if recipe.get(name) is not None}
-    return Schedule(autoencoder_steps=0, dynamics_steps=0, joint_steps=steps, refit_steps=0, **chosen)
 
 
 @dataclasses.dataclass(frozen=True)

@@ -86,7 +86,7 @@ def run(args: argparse.Namespace) -> int:
     meter = cldyn.TextProgressMeter() if args.progress else None
     refine = None
     if args.refine_steps:  # the joint stage of the model's own recipe (keyvision.json)
-        from keyvision._train import joint_stage
+        from keyvision._identify import joint_stage
 
         refine = joint_stage(spec.get("schedule") or {}, args.refine_steps)
     try:
