@@ -10,7 +10,6 @@ runs: only their Jacobians enter the dynamics, so a learnt model carries no leng
 
 import dataclasses
 from collections.abc import Mapping, Sequence
-from typing import TYPE_CHECKING
 
 import equinox as eqx
 import jax
@@ -21,8 +20,7 @@ from jaxtyping import ArrayLike, Float
 import cldyn
 from cldyn._constraint import Anchor, Distance, FixedCoordinate, Stack
 
-if TYPE_CHECKING:
-    from ._train import Schedule
+from ._train import Schedule, encode_sequences, train
 
 
 @dataclasses.dataclass(frozen=True)
@@ -405,7 +403,6 @@ def identify(
     if not xml:
         raise ValueError("identify: the frames carry no MuJoCo scene (frames.info['mjcf_xml'])")
     from ._data import ImageSequences
-    from ._train import encode_sequences
 
     frames = _place_controls(frames, inputs, model.dynamics.num_inputs)
     measured, held_out = frames.split()
@@ -510,8 +507,6 @@ def _single(model):
 
 def _refine(model, data, schedule, seed: int):
     """The joint stage of `keyvision.train` alone, on `data`, from `model` (float32)."""
-    from ._train import Schedule, train
-
     if not isinstance(schedule, Schedule):
         raise TypeError(f"identify: refine must be a keyvision.Schedule, got {type(schedule).__name__}")
     if not schedule.joint_steps:
@@ -543,12 +538,10 @@ def _image_errors(before, after, validation, refined=None) -> dict:
     return record
 
 
-def joint_stage(recipe: dict, steps: int) -> "Schedule":
+def joint_stage(recipe: dict, steps: int) -> Schedule:
     """The joint stage (c) of a training recipe (`keyvision.json`'s `schedule`), for `steps` steps and
     nothing else: what `keyvision.identify(refine=)` runs after adding effects to a model."""
     fields = ("joint_batch", "window", "joint_learning_rate", "dynamics_weight", "heatmap_weight")
     fields += ("constraint_weight", "constraint_drift", "augment", "warmup_steps", "final_learning_rate")
-    from ._train import Schedule  # noqa: F811 (the name above is for type checkers only)
-
     chosen = {name: recipe[name] for name in fields if recipe.get(name) is not None}
     return Schedule(autoencoder_steps=0, dynamics_steps=0, joint_steps=steps, refit_steps=0, **chosen)
