@@ -20,6 +20,9 @@ from jaxtyping import ArrayLike, Float
 import cldyn
 from cldyn._constraint import Anchor, Distance, FixedCoordinate, Stack
 
+from ._data import ImageSequences
+from ._evaluate import predict_runs, prediction_threshold, valid_prediction_time
+from ._model import KeyCLD
 from ._train import Schedule, encode_sequences, train
 
 
@@ -393,8 +396,6 @@ def identify(
     (as the `keyvision identify` command turns on, and `cldyn.identify` needs); without it a
     `ValueError` says so.
     """
-    from ._model import KeyCLD
-
     if jax.dtypes.canonicalize_dtype(jnp.float64) != jnp.float64:
         raise ValueError("identify runs in float64: turn on JAX's 64-bit mode first")
     if not isinstance(model, KeyCLD) or not isinstance(model.dynamics, cldyn.ConstrainedLagrangian):
@@ -402,8 +403,6 @@ def identify(
     xml = frames.info.get("mjcf_xml")
     if not xml:
         raise ValueError("identify: the frames carry no MuJoCo scene (frames.info['mjcf_xml'])")
-    from ._data import ImageSequences
-
     frames = _place_controls(frames, inputs, model.dynamics.num_inputs)
     measured, held_out = frames.split()
     if measured.num_runs == 0:
@@ -518,8 +517,6 @@ def _refine(model, data, schedule, seed: int):
 def _image_errors(before, after, validation, refined=None) -> dict:
     """VPT and image MSE of the model before and after (and refined), predicting the validation runs
     (float32)."""
-    from ._evaluate import predict_runs, prediction_threshold, valid_prediction_time
-
     images = validation.images(np.float32)
     controls = validation.u.astype(np.float32)
     threshold = prediction_threshold(images)
