@@ -116,8 +116,9 @@ def register(subparsers) -> None:
         type=positive(),
         default=None,
         help="peak learning rate of the dynamics stages (b) and (d) (default: "
-        f"{NETWORKS_DYNAMICS_LR:g}; {PHYSICAL_DYNAMICS_LR:g} for keycld-structured, whose few "
-        "physical parameters move slowly at the networks' rate)",
+        f"{NETWORKS_DYNAMICS_LR:g} for dynamics with networks; {PHYSICAL_DYNAMICS_LR:g} for dynamics "
+        "without any, such as keycld-structured's, whose few physical parameters move slowly at the "
+        "networks' rate)",
     )
     parser.add_argument(
         "--warmup-steps",
