@@ -12,7 +12,7 @@ STAMP := $(VENV)/.installed
 export MUJOCO_GL ?= egl
 
 define PRECOMPILE
-import importlib, importlib.util, py_compile, sys, warnings
+import importlib, py_compile, sys, warnings
 warnings.simplefilter("ignore")
 for name in ("cldyn", "cldyn.mujoco", "keyvision", "matplotlib.pyplot", "imageio.v3", "dm_control.suite",
              "pytest", "xdist"):
@@ -24,7 +24,7 @@ for module in list(sys.modules.values()):
     source = getattr(module, "__file__", None) or ""
     if source.endswith(".py"):
         try:
-            py_compile.compile(source, cfile=importlib.util.cache_from_source(source), doraise=True)
+            py_compile.compile(source, doraise=True)  # into __pycache__, where imports look
         except (OSError, py_compile.PyCompileError):
             pass  # a read-only or odd source: Python compiles it on import as before
 endef
