@@ -43,8 +43,11 @@ def _step(params, opt_state, static, data, key, index, *, loss, optimizer, batch
     new_params = eqx.apply_updates(params, updates)
     finite = jnp.isfinite(value) & _all_finite(grads)
 
+    # one conditional for the whole state, not a select per leaf: XLA copied the reduction of the
+    # finiteness flags into every leaf's select, which made the step's compiled program twice as
+    # long (an autoencoder's step: 31,500 lines of optimised HLO -> 17,900, compiled 20% sooner)
     def keep(new, old):
-        return jax.tree.map(lambda a, b: jnp.where(finite, a, b), new, old)
+        return jax.lax.cond(finite, lambda: new, lambda: old)
 
     return keep(new_params, params), keep(new_opt_state, opt_state), value, finite
 
@@ -124,7 +127,7 @@ def _host_step(params, opt_state, static, data, key, index, bad, done, *, loss, 
     go = finite & ~bad  # after a failed step the rest of the chunk changes nothing
 
     def keep(new, old):
-        return jax.tree.map(lambda a, b: jnp.where(go, a, b), new, old)
+        return jax.lax.cond(go, lambda: new, lambda: old)
 
     return (
         keep(new_params, params), keep(new_opt_state, opt_state), value, bad | ~finite,
