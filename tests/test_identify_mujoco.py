@@ -5,8 +5,7 @@ effect) does not declare: each injected effect must be the top detection at the 
 actuator, its value within 15% (30% for friction), and the held-out rollout error must drop at least
 5x. Also: nothing detected on effect-free data in 9 of 10 seeds, two effects at once, damping through
 1 mm noise, a learned nominal model, and dm_control's stock cart-poles with their rail limits.
-benchmarks/identify_keycld.py runs every case of `CASES` as a table; the tests run 10 of its 14
-(`TESTED`).
+benchmarks/identify_keycld.py runs the same `CASES` as a table.
 """
 
 import jax
@@ -127,20 +126,6 @@ CASES = [
 ]
 
 
-# The cases the tests run (issue 6 asks for at least 10): every effect, every scene with three or more
-# effects, hinges and the slider. The other four put an effect on a hinge where another case has it
-# on a hinge already (damping, Coulomb friction, spring, armature) and run in
-# benchmarks/identify_keycld.py only: each case compiles its own augmented model, 15-25 s of the
-# suite's 15 minutes on 2 cores.
-UNTESTED = {
-    ("keycld/pendulum", "joint_coulomb", "hinge"),
-    ("keycld/pendulum", "joint_spring", "hinge"),
-    ("keycld/cartpole", "joint_damping", "hinge_1"),
-    ("keycld/acrobot", "joint_armature", "elbow"),
-}
-TESTED = [c for c in CASES if c[:3] not in UNTESTED]
-
-
 def _check(result, effect, where, truth, rtol):
     assert result.detected, f"nothing detected; rejected: {[d.candidate.label for d in result.rejected]}"
     top = result.detected[0]
@@ -153,8 +138,8 @@ def _check(result, effect, where, truth, rtol):
 @pytest.mark.slow
 @pytest.mark.parametrize(
     "scene, effect, where, change, truth",
-    TESTED,
-    ids=[f"{c[0].split('/')[1]}-{c[1]}-{c[2]}" for c in TESTED],
+    CASES,
+    ids=[f"{c[0].split('/')[1]}-{c[1]}-{c[2]}" for c in CASES],
 )
 def test_injected_effect_is_found(scene, effect, where, change, truth):
     # dm_control's MJCF compiles angles in degrees: springref is given in degrees, reported in radians
