@@ -7,7 +7,7 @@ for damping, two effects at once, and effect-free data (10 seeds). Then dm_contr
 rail limits active, recorded at their own 10 ms with 1 mm noise: the one-pole scene as it is (nothing to
 find), and the two-pole scene (`cartpole/two_poles`) with damping injected on its second hinge. The
 protocol and the cases are those of the tests (imported from tests/test_identify_mujoco.py, whose
-`CASES` are all run here; the tests run 10 of the 14).
+`CASES` the tests run too).
 
 Writes benchmarks/results/identify_keycld.json and identify_keycld.md; prints the JSON.
 
