@@ -1,0 +1,362 @@
+"""Can the stock acrobot's damping be seen from frames at all? An energy balance that no conservative model
+error can fake, measured on MuJoCo's states and on the learnt acrobot's estimates from frames.
+
+`keyvision.identify` finds no damping on dm_control's stock acrobot (0.05 N m s at both joints) because the
+learnt model's force errors are some twenty times the damping's force (docs/images.md). This diagnostic asks
+whether a test that is blind to those errors would do better. Along a run, energy changes only by the work of
+the controls and of the dissipation, so over any window `[a, b]`
+
+    E(b) - E(a) - W_ab = -sum_j c_j int_a^b qd_j^2 dt,
+
+and a model whose inertia or potential is wrong makes an error in `E` only at the window's two ends, never
+one that grows with the window. The unknown error is written in a basis in which any energy of a chain of
+two hinges lies: `V(q)` and the three entries of `M(q)` (times the velocity products) as Fourier series in
+the joint angles up to order `--order`. Windows start and end every 10 samples of each run; the damping
+`c_j` and the basis coefficients are one least-squares fit over all of them, with a bootstrap over runs for
+the 95% intervals.
+
+The same runs of two scenes (dm_control's stock acrobot and the damping-free KeyCLD acrobot, both under
+KeyCLD's camera, `--runs` runs of `--frames` frames, seed 0), measured five ways:
+
+- `state`: MuJoCo's joint positions and velocities in MuJoCo's units, `W` from the gear and the control as
+  MuJoCo applied it: what the test gives when the measurement is exact;
+- velocities from angles by a Savitzky-Golay filter, for each window of `--windows` (degree 3) and for
+  the window and degree that `cldyn.identify` would choose on the estimated keypoints; `W` MuJoCo's own:
+  - `filtered`: MuJoCo's angles as they are, so only the filter errs;
+  - `+ warp`: MuJoCo's angles warped by the estimator's error that is a fixed function of the pose (a
+    Fourier fit of order 4 in the true angles, per joint);
+  - `+ noise`: MuJoCo's angles plus white noise of the RMS of the estimator's remaining error;
+  - `frames`: the joints of the keypoints that the learnt model's estimator reads from the frames, with
+    `E` and `W` from the learnt model, converted to N m s with the joules per model unit that the
+    scene's gears fix (`keyvision.identify`'s conversion).
+
+Each of `--models` (by default the two committed acrobot models: KeyCLD's, and the structured one of
+docs/images.md's "Control from frames") is measured on the same runs. Also reported: the estimator's
+joint-angle error against MuJoCo (sign and offset aligned) and the part of it
+that is not a function of the pose. Writes benchmarks/results/vision_energy_balance.{json,md} and prints the
+JSON.
+
+    MUJOCO_GL=egl python benchmarks/vision_energy_balance.py   # about 25 min on 2 cores
+"""
+
+import argparse
+import os
+import pathlib
+import sys
+import time
+
+os.environ.setdefault("MUJOCO_GL", "egl")
+
+ROOT = pathlib.Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT / "benchmarks"))
+from _common import RESULTS, VISION_MODELS, machine, write  # noqa: E402
+
+SOURCES = {"stock": ("keycld/acrobot:stock", 0.05), "damping-free": ("keycld/acrobot", 0.0)}
+JOINTS = ("shoulder", "elbow")
+# the committed acrobot models: KeyCLD's, and the structured one of "Control from frames" (docs/images.md)
+MODELS = (VISION_MODELS["acrobot"], RESULTS / "vision_models" / "acrobot-structured")
+
+
+def _fourier(q, order: int):
+    """`1, cos(m q1 + n q2), sin(...)` for `0 < |m| + |n| <= order` (one of each +-pair): `(..., F)`."""
+    import numpy as np
+
+    columns = [np.ones(q.shape[:-1])]
+    for m in range(order + 1):
+        for n in range(-order, order + 1):
+            if (m == 0 and n <= 0) or m + abs(n) > order:
+                continue
+            angle = m * q[..., 0] + n * q[..., 1]
+            columns += [np.cos(angle), np.sin(angle)]
+    return np.stack(columns, -1)
+
+
+def _cumulative(f, dt: float):
+    """`int_0^t f` at every sample, along axis 1, of the cubic spline through the samples."""
+    import numpy as np
+    from scipy.interpolate import CubicSpline
+
+    t = dt * np.arange(f.shape[1])
+    return CubicSpline(t, f, axis=1).antiderivative()(t)
+
+
+def balance(q, qd, energy, power, dt: float, order: int, edge: int, seed: int = 0) -> dict:
+    """Fit `E(b) - E(a) - W_ab = -sum_j c_j int qd_j^2 - [basis](b) + [basis](a)` over all windows."""
+    import numpy as np
+
+    trig = _fourier(q, order)
+    basis = [trig[..., 1:]]  # the potential (its constant drops out of every difference)
+    for i, j in ((0, 0), (0, 1), (1, 1)):
+        basis.append((qd[..., i] * qd[..., j])[..., None] * trig)
+    basis = np.concatenate(basis, -1)
+    work, dissipated = _cumulative(power, dt), _cumulative(qd**2, dt)
+    runs, samples = q.shape[:2]
+    points = np.arange(edge, samples - edge, 10)
+    first, last = (points[i] for i in np.triu_indices(len(points), 1))
+    y = energy[:, last] - energy[:, first] - (work[:, last] - work[:, first])
+    a = np.concatenate(
+        [-(dissipated[:, last] - dissipated[:, first]), -(basis[:, last] - basis[:, first])], -1
+    )
+    norm = np.linalg.norm(a.reshape(-1, a.shape[-1]), axis=0) + 1e-300
+
+    def fit(rows):
+        theta, *_ = np.linalg.lstsq(a[rows].reshape(-1, a.shape[-1]) / norm, y[rows].reshape(-1), rcond=None)
+        return theta / norm
+
+    theta = fit(np.arange(runs))
+    rng = np.random.default_rng(seed)
+    boot = np.array([fit(rng.integers(0, runs, runs))[:2] for _ in range(200)])
+    residual = y.reshape(-1) - a.reshape(-1, a.shape[-1]) @ theta
+    return {
+        "damping": theta[:2],
+        "interval": np.percentile(boot, [2.5, 97.5], axis=0).T,
+        "residual_rms": float(residual.std()),
+        "balance_rms": float(y.std()),
+        "columns": int(a.shape[-1]),
+        "windows": int(y.size),
+    }
+
+
+def _from_state(frames, order: int, angles=None, smoothing: tuple[int, int] = (0, 0)) -> dict:
+    """The balance on MuJoCo's states; with `angles`, on those joint angles instead (velocities by the
+    frames' filter), while the controls' work stays MuJoCo's own."""
+    import mujoco
+    import numpy as np
+    from scipy.signal import savgol_filter
+
+    q, qd = (np.asarray(frames.extras[k], dtype=float) for k in ("qpos", "qvel"))
+    true_qd = qd
+    scene = mujoco.MjModel.from_xml_string(frames.info["mjcf_xml"])
+    torque = np.zeros_like(q)
+    for column, name in enumerate(frames.info["actuator_names"]):
+        a = mujoco.mj_name2id(scene, mujoco.mjtObj.mjOBJ_ACTUATOR, str(name))
+        u = np.asarray(frames.u[..., column], dtype=float)
+        if scene.actuator_ctrllimited[a]:  # as MuJoCo applies it (the stock motor clips to [-1, 1])
+            u = np.clip(u, *scene.actuator_ctrlrange[a])
+        joint = mujoco.mj_id2name(scene, mujoco.mjtObj.mjOBJ_JOINT, scene.actuator_trnid[a, 0])
+        torque[..., JOINTS.index(joint)] = scene.actuator_gear[a, 0] * u
+    power = (torque * true_qd).sum(-1)
+    edge = 0
+    if angles is not None:
+        window, degree = smoothing
+        q = savgol_filter(angles, window, degree, axis=1)
+        qd = savgol_filter(angles, window, degree, deriv=1, delta=frames.dt, axis=1)
+        edge = window // 2
+    return balance(q, qd, np.zeros(q.shape[:2]), power, frames.dt, order, edge=edge) | {"units": "N m s"}
+
+
+def _from_frames(frames, model, spec, order: int, windows) -> tuple:
+    """The balance on the estimator's joints for each Savitzky-Golay window of `windows` (degree 3) and
+    for the window and degree that `cldyn.identify` would choose on these keypoints; the filters used; and
+    the estimator's error against MuJoCo (`_estimator_error`)."""
+    import equinox as eqx
+    import jax
+    import jax.numpy as jnp
+    import numpy as np
+    from scipy.signal import savgol_filter
+
+    import cldyn
+    import keyvision
+    from keyvision._identify import _place_controls, actuator_gears, energy_scale, metres_per_unit
+
+    frames = _place_controls(
+        frames, keyvision.scene_actuators(spec["data"]["scene"]), model.dynamics.num_inputs
+    )
+    x = np.asarray(
+        keyvision.encode_sequences(model, keyvision.ImageSequences.from_frames(frames)).x, dtype=float
+    )
+    dynamics = jax.tree.map(lambda a: a.astype(jnp.float64) if eqx.is_inexact_array(a) else a, model.dynamics)
+    structure = keyvision.joint_structure(dynamics.constraint, x, JOINTS)
+    joints = structure.joint_map
+    runs, samples, k = x.shape
+    q = np.asarray(jax.vmap(joints.inverse)(jnp.asarray(x.reshape(-1, k)))).reshape(runs, samples, -1)
+    q = np.unwrap(q, axis=1)
+    joules = energy_scale(
+        dynamics,
+        structure,
+        x.reshape(-1, k),
+        actuator_gears(frames.info["mjcf_xml"]),
+        metres_per_unit(frames.camera),
+    )["joules_per_unit"]
+    u = jnp.asarray(np.asarray(frames.u, dtype=float).reshape(-1, frames.u.shape[-1]))
+    energy_and_power = jax.jit(
+        jax.vmap(lambda p, v, c: (dynamics.energy(p, v), v @ (dynamics.input_matrix(p) @ c)))
+    )
+    choice = cldyn.Smoothing().choose(x, frames.dt)
+    filters = {f"w = {w}": (w, 3) for w in windows}
+    filters[f"w = {choice.window}, degree {choice.order} (identify's choice)"] = (choice.window, choice.order)
+    fits = {}
+    for label, (window, degree) in filters.items():
+        smooth = savgol_filter(q, window, degree, axis=1)
+        qd = savgol_filter(q, window, degree, deriv=1, delta=frames.dt, axis=1)
+        position, velocity = jax.vmap(lambda a, b: jax.jvp(joints.forward, (a,), (b,)))(
+            jnp.asarray(smooth.reshape(-1, 2)), jnp.asarray(qd.reshape(-1, 2))
+        )
+        energy, power = (
+            np.asarray(v).reshape(runs, samples) for v in energy_and_power(position, velocity, u)
+        )
+        fit = balance(smooth, qd, energy, power, frames.dt, order, edge=window // 2)
+        fits[label] = fit | {
+            "damping": fit["damping"] * joules,
+            "interval": fit["interval"] * joules,
+            "units": "N m s",
+            "joules_per_model_unit": float(joules),
+        }
+    return (fits, filters, *_estimator_error(q, np.asarray(frames.extras["qpos"], dtype=float)))
+
+
+def _estimator_error(q, truth) -> dict:
+    """RMS joint-angle error (sign and offset aligned), and the part left after a fixed function of the pose;
+    also that function (the warp, added to MuJoCo's angles) and the RMS of the rest per joint."""
+    import numpy as np
+
+    out, warp, rest_rms = {}, np.zeros_like(truth), []
+    for j, name in enumerate(JOINTS):
+        best = None
+        for sign in (1, -1):
+            d = q[..., j] - sign * truth[..., j]
+            e = np.angle(np.exp(1j * (d - np.angle(np.exp(1j * d).mean()))))
+            if best is None or np.abs(e).mean() < np.abs(best[1]).mean():
+                best = (sign, e)
+        sign, e = best
+        columns = _fourier(sign * truth, 4).reshape(-1, _fourier(truth[:1, :1], 4).shape[-1])
+        coefficients, *_ = np.linalg.lstsq(columns, e.reshape(-1), rcond=None)
+        rest = e.reshape(-1) - columns @ coefficients
+        out[name] = {
+            "rms_rad": float(np.sqrt((e**2).mean())),
+            "not_a_function_of_pose_rms_rad": float(rest.std()),
+        }
+        warp[..., j] = sign * (columns @ coefficients).reshape(e.shape)  # in MuJoCo's sense of the angle
+        rest_rms.append(rest.std())
+    return out, warp, np.array(rest_rms)
+
+
+def _row(data: str, source: str, fit: dict) -> str:
+    cells = [
+        f"{fit['damping'][j]:.4f} [{fit['interval'][j][0]:.3f}, {fit['interval'][j][1]:.3f}]"
+        for j in range(2)
+    ]
+    rms = f"{fit['residual_rms']:.3g} / {fit['balance_rms']:.3g}"
+    return f"| {data} | {source} | {cells[0]} | {cells[1]} | {rms} |"
+
+
+def _markdown(result: dict) -> str:
+    lines = [
+        "# The stock acrobot's damping by energy balance (`benchmarks/vision_energy_balance.py`)",
+        "",
+        f"{result['runs']} runs of {result['frames']} frames ({result['seconds_per_run']:.2f} s), seed 0; "
+        f"Fourier basis of order {result['order']}. Damping in N m s with its 95% bootstrap interval over "
+        "runs; the truth is 0.05 at both joints (stock) and 0 (damping-free). `state`: MuJoCo's joint "
+        "states. With a window `w`, velocities come from a Savitzky-Golay filter of `w` samples (degree 3, "
+        "or as `cldyn.identify` would choose it on the estimated keypoints): of MuJoCo's angles as they "
+        "are (`filtered`), warped by the estimator's pose-dependent error (`+ warp`), with noise of the "
+        "size of its remaining error (`+ noise`), and of the estimator's own angles (`frames`, with the "
+        "learnt model's energy and input work).",
+    ]
+    for name, entry in result["models"].items():
+        lines += ["", f"## `{name}` (`{entry['model']}`)", ""]
+        lines += [
+            "| data | source | shoulder | elbow | residual / balance RMS |",
+            "| --- | --- | --- | --- | --- |",
+        ]
+        for data, row in entry["cases"].items():
+            lines.append(_row(data, "state", row["state"]))
+            for window, fits in row["windows"].items():
+                lines += [_row(data, f"{window}, {source}", fit) for source, fit in fits.items()]
+        lines += ["", "The estimator's joint angles against MuJoCo's (radians, RMS):", ""]
+        lines += ["| data | joint | error | not a function of the pose |", "| --- | --- | --- | --- |"]
+        for data, row in entry["cases"].items():
+            for joint, e in row["estimator_error"].items():
+                lines.append(
+                    f"| {data} | {joint} | {e['rms_rad']:.3f} | {e['not_a_function_of_pose_rms_rad']:.4f} |"
+                )
+    lines += ["", f"Machine: {result['machine']['platform']}, {result['wall_s']:.0f} s.", ""]
+    return "\n".join(lines)
+
+
+def _jsonable(fit: dict) -> dict:
+    return {k: v.tolist() if hasattr(v, "tolist") else v for k, v in fit.items()}
+
+
+def _cases(model, spec, protocol, args) -> dict:
+    import numpy as np
+
+    import keyvision
+
+    cases = {}
+    for data, (source, truth) in SOURCES.items():
+        frames = keyvision.render(source, protocol=protocol, seed=0, workers=1)
+        from_frames, filters, error, warp, noise = _from_frames(frames, model, spec, args.order, args.windows)
+        angles = np.asarray(frames.extras["qpos"], dtype=float)
+        jitter = noise * np.random.default_rng(1).standard_normal(angles.shape)
+        windows = {}
+        for label, smoothing in filters.items():
+            windows[label] = {
+                "filtered": _from_state(frames, args.order, angles, smoothing),
+                "+ warp": _from_state(frames, args.order, angles + warp, smoothing),
+                "+ noise": _from_state(frames, args.order, angles + jitter, smoothing),
+                "frames": from_frames[label],
+            }
+            print(f"{data}, {label}: frames {from_frames[label]['damping']}", file=sys.stderr)
+        cases[data] = {
+            "scene": source,
+            "true_damping": truth,
+            "dt": frames.dt,
+            "state": _jsonable(_from_state(frames, args.order)),
+            "windows": {w: {k: _jsonable(f) for k, f in fits.items()} for w, fits in windows.items()},
+            "estimator_error": error,
+        }
+    return cases
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--runs", type=int, default=60)
+    parser.add_argument("--frames", type=int, default=300)
+    parser.add_argument(
+        "--order", type=int, default=3, help="order of the Fourier basis of the energy's error"
+    )
+    parser.add_argument(
+        "--windows", type=int, nargs="+", default=[9, 15, 25], help="Savitzky-Golay windows (samples, odd)"
+    )
+    parser.add_argument(
+        "--models",
+        nargs="+",
+        default=[str(path) for path in MODELS],
+        help="directories of learnt acrobot models (keyvision.load_model)",
+    )
+    args = parser.parse_args()
+
+    import jax
+
+    jax.config.update("jax_enable_x64", True)
+    import keyvision
+
+    started = time.perf_counter()
+    protocol = keyvision.RenderProtocol(
+        runs=args.runs, validation_runs=min(10, args.runs - 1), frames=args.frames
+    )
+    models = {}
+    for directory in args.models:
+        model, spec = keyvision.load_model(directory)
+        path = pathlib.Path(directory).resolve()
+        models[path.name] = {
+            "model": str(path.relative_to(ROOT)) if path.is_relative_to(ROOT) else str(path),
+            "cases": _cases(model, spec, protocol, args),
+        }
+    dt = next(iter(next(iter(models.values()))["cases"].values()))["dt"]
+    result = {
+        "runs": args.runs,
+        "frames": args.frames,
+        "seconds_per_run": (args.frames - 1) * dt,
+        "order": args.order,
+        "windows": args.windows,
+        "models": models,
+        "wall_s": time.perf_counter() - started,
+        "machine": machine(),
+    }
+    write("vision_energy_balance", result, _markdown(result))
+
+
+if __name__ == "__main__":
+    main()
