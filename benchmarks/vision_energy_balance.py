@@ -16,7 +16,7 @@ the joint angles up to order `--order`. Windows start and end every 10 samples o
 the 95% intervals.
 
 The same runs of two scenes (dm_control's stock acrobot and the damping-free KeyCLD acrobot, both under
-KeyCLD's camera, `--runs` runs of `--frames` frames, seed 0), measured five ways:
+KeyCLD's camera, `--runs` runs of `--frames` frames rendered with `--seed`), measured five ways:
 
 - `state`: MuJoCo's joint positions and velocities in MuJoCo's units, `W` from the gear and the control as
   MuJoCo applied it: what the test gives when the measurement is exact;
@@ -205,7 +205,7 @@ def _from_frames(frames, model, spec, order: int, windows) -> tuple:
     return (fits, filters, *_estimator_error(q, np.asarray(frames.extras["qpos"], dtype=float)))
 
 
-def _estimator_error(q, truth) -> dict:
+def _estimator_error(q, truth) -> tuple:
     """RMS joint-angle error (sign and offset aligned), and the part left after a fixed function of the pose;
     also that function (the warp, added to MuJoCo's angles) and the RMS of the rest per joint."""
     import numpy as np
@@ -244,7 +244,8 @@ def _markdown(result: dict) -> str:
     lines = [
         "# The stock acrobot's damping by energy balance (`benchmarks/vision_energy_balance.py`)",
         "",
-        f"{result['runs']} runs of {result['frames']} frames ({result['seconds_per_run']:.2f} s), seed 0; "
+        f"{result['runs']} runs of {result['frames']} frames ({result['seconds_per_run']:.2f} s), "
+        f"seed {result['seed']}; "
         f"Fourier basis of order {result['order']}. Damping in N m s with its 95% bootstrap interval over "
         "runs; the truth is 0.05 at both joints (stock) and 0 (damping-free). `state`: MuJoCo's joint "
         "states. With a window `w`, velocities come from a Savitzky-Golay filter of `w` samples (degree 3, "
@@ -285,7 +286,7 @@ def _cases(model, spec, protocol, args) -> dict:
 
     cases = {}
     for data, (source, truth) in SOURCES.items():
-        frames = keyvision.render(source, protocol=protocol, seed=0, workers=1)
+        frames = keyvision.render(source, protocol=protocol, seed=args.seed, workers=1)
         from_frames, filters, error, warp, noise = _from_frames(frames, model, spec, args.order, args.windows)
         angles = np.asarray(frames.extras["qpos"], dtype=float)
         jitter = noise * np.random.default_rng(1).standard_normal(angles.shape)
@@ -313,6 +314,7 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--runs", type=int, default=60)
     parser.add_argument("--frames", type=int, default=300)
+    parser.add_argument("--seed", type=int, default=0, help="seed of the rendered runs")
     parser.add_argument(
         "--order", type=int, default=3, help="order of the Fourier basis of the energy's error"
     )
@@ -348,6 +350,7 @@ def main() -> None:
     result = {
         "runs": args.runs,
         "frames": args.frames,
+        "seed": args.seed,
         "seconds_per_run": (args.frames - 1) * dt,
         "order": args.order,
         "windows": args.windows,
