@@ -33,8 +33,8 @@ KeyCLD's camera, `--runs` runs of `--frames` frames rendered with `--seed`), mea
 Each of `--models` (by default the two committed acrobot models: KeyCLD's, and the structured one of
 docs/images.md's "Control from frames") is measured on the same runs. Also reported: the estimator's
 joint-angle error against MuJoCo (sign and offset aligned) and the part of it
-that is not a function of the pose. Writes benchmarks/results/vision_energy_balance.{json,md} and prints the
-JSON.
+that is not a function of the pose. Writes benchmarks/results/vision_energy_balance.{json,md} (with a
+nonzero seed, `vision_energy_balance_seed<seed>.{json,md}`) and prints the JSON.
 
     MUJOCO_GL=egl python benchmarks/vision_energy_balance.py   # about 25 min on 2 cores
 """
@@ -358,7 +358,7 @@ def main() -> None:
         "wall_s": time.perf_counter() - started,
         "machine": machine(),
     }
-    write("vision_energy_balance", result, _markdown(result))
+    write("vision_energy_balance" + (f"_seed{args.seed}" if args.seed else ""), result, _markdown(result))
 
 
 if __name__ == "__main__":
