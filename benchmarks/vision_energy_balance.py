@@ -219,7 +219,8 @@ def _estimator_error(q, truth) -> tuple:
             if best is None or np.abs(e).mean() < np.abs(best[1]).mean():
                 best = (sign, e)
         sign, e = best
-        columns = _fourier(sign * truth, 4).reshape(-1, _fourier(truth[:1, :1], 4).shape[-1])
+        columns = _fourier(sign * truth, 4)
+        columns = columns.reshape(-1, columns.shape[-1])
         coefficients, *_ = np.linalg.lstsq(columns, e.reshape(-1), rcond=None)
         rest = e.reshape(-1) - columns @ coefficients
         out[name] = {
@@ -279,10 +280,18 @@ def _jsonable(fit: dict) -> dict:
     return {k: v.tolist() if hasattr(v, "tolist") else v for k, v in fit.items()}
 
 
-def _cases(model, spec, protocol, args) -> dict:
+def _cases(model, spec, protocol, args, measured: dict) -> dict:
+    """Every row for one model. `measured` keeps the rows that do not depend on the model (MuJoCo's
+    states, as they are or filtered), by data set and filter, for the next model."""
     import numpy as np
 
     import keyvision
+
+    def state(data, frames, angles=None, smoothing=(0, 0)):
+        key = (data, smoothing)
+        if key not in measured:
+            measured[key] = _from_state(frames, args.order, angles, smoothing)
+        return measured[key]
 
     cases = {}
     for data, (source, truth) in SOURCES.items():
@@ -293,7 +302,7 @@ def _cases(model, spec, protocol, args) -> dict:
         windows = {}
         for label, smoothing in filters.items():
             windows[label] = {
-                "filtered": _from_state(frames, args.order, angles, smoothing),
+                "filtered": state(data, frames, angles, smoothing),
                 "+ warp": _from_state(frames, args.order, angles + warp, smoothing),
                 "+ noise": _from_state(frames, args.order, angles + jitter, smoothing),
                 "frames": from_frames[label],
@@ -303,7 +312,7 @@ def _cases(model, spec, protocol, args) -> dict:
             "scene": source,
             "true_damping": truth,
             "dt": frames.dt,
-            "state": _jsonable(_from_state(frames, args.order)),
+            "state": _jsonable(state(data, frames)),
             "windows": {w: {k: _jsonable(f) for k, f in fits.items()} for w, fits in windows.items()},
             "estimator_error": error,
         }
@@ -338,13 +347,13 @@ def main() -> None:
     protocol = keyvision.RenderProtocol(
         runs=args.runs, validation_runs=min(10, args.runs - 1), frames=args.frames
     )
-    models = {}
+    models, measured = {}, {}
     for directory in args.models:
         model, spec = keyvision.load_model(directory)
         path = pathlib.Path(directory).resolve()
         models[path.name] = {
             "model": str(path.relative_to(ROOT)) if path.is_relative_to(ROOT) else str(path),
-            "cases": _cases(model, spec, protocol, args),
+            "cases": _cases(model, spec, protocol, args, measured),
         }
     dt = next(iter(next(iter(models.values()))["cases"].values()))["dt"]
     result = {
