@@ -29,6 +29,12 @@ KeyCLD's camera, `--runs` runs of `--frames` frames rendered with `--seed`), mea
   - `frames`: the joints of the keypoints that the learnt model's estimator reads from the frames, with
     `E` and `W` from the learnt model, converted to N m s with the joules per model unit that the
     scene's gears fix (`keyvision.identify`'s conversion).
+- and three of those again by instrumental variables (`filtered`, `+ noise`, `frames`, each
+  `instrumented`): noise in the velocities makes the fit's columns noisy, and least squares on noisy
+  columns is biased (errors in variables). Three velocity estimates from disjoint samples of each
+  filter's window (the offsets 0, 1 and 2 modulo 3) have independent noises where the angles' noise is
+  white: the columns are made of the first two (each velocity product symmetric in them, the learnt
+  energy polarised to match), the instruments of the third.
 
 Each of `--models` (by default the two committed acrobot models: KeyCLD's, and the structured one of
 docs/images.md's "Control from frames") is measured on the same runs. Also reported: the estimator's
@@ -80,27 +86,71 @@ def _cumulative(f, dt: float):
     return CubicSpline(t, f, axis=1).antiderivative()(t)
 
 
-def balance(q, qd, energy, power, dt: float, order: int, edge: int, seed: int = 0) -> dict:
-    """Fit `E(b) - E(a) - W_ab = -sum_j c_j int qd_j^2 - [basis](b) + [basis](a)` over all windows."""
+def _disjoint(q, window: int, degree: int, dt: float, ends) -> list:
+    """Three velocity estimates from disjoint samples of each window of `window` samples: from the offsets
+    that are 0, 1 and 2 modulo 3 (each the derivative at 0 of a polynomial of `degree`, lower where its
+    samples are fewer). Where the angles' noise is white, the three estimates' noises are independent.
+    `ends` fills the first and last `window // 2` samples."""
+    import numpy as np
+
+    half, samples = window // 2, q.shape[1]
+    estimates = []
+    for remainder in range(3):
+        offsets = np.array([o for o in range(-half, half + 1) if o % 3 == remainder], dtype=float)
+        powers = offsets[:, None] ** np.arange(min(degree, offsets.size - 1) + 1)
+        weights = np.linalg.pinv(powers)[1] / dt
+        qd = np.array(ends, dtype=float)
+        qd[:, half : samples - half] = sum(
+            w * q[:, half + int(o) : samples - half + int(o)] for o, w in zip(offsets, weights)
+        )
+        estimates.append(qd)
+    return estimates
+
+
+def _differences(q, qd, other, dt: float, order: int, first, last):
+    """The fit's columns over the windows `[first, last]`: `-int qd_j other_j` and minus the change of the
+    basis (the potential's Fourier terms, and each symmetric velocity product times them)."""
     import numpy as np
 
     trig = _fourier(q, order)
     basis = [trig[..., 1:]]  # the potential (its constant drops out of every difference)
     for i, j in ((0, 0), (0, 1), (1, 1)):
-        basis.append((qd[..., i] * qd[..., j])[..., None] * trig)
+        product = (qd[..., i] * other[..., j] + other[..., i] * qd[..., j]) / 2
+        basis.append(product[..., None] * trig)
     basis = np.concatenate(basis, -1)
-    work, dissipated = _cumulative(power, dt), _cumulative(qd**2, dt)
+    dissipated = _cumulative(qd * other, dt)
+    return np.concatenate(
+        [-(dissipated[:, last] - dissipated[:, first]), -(basis[:, last] - basis[:, first])], -1
+    )
+
+
+def balance(
+    q, qd, energy, power, dt: float, order: int, edge: int, seed: int = 0, other=None, instrument=None
+) -> dict:
+    """Fit `E(b) - E(a) - W_ab = -sum_j c_j int qd_j^2 - [basis](b) + [basis](a)` over all windows, by least
+    squares. With `other` and `instrument` (`_disjoint`'s second and third estimates), by instrumental
+    variables: the velocity products are those of `qd` and `other` (`energy` must be made the same way) and
+    the instruments are the same columns made of `instrument` alone. Noise in the velocities makes the
+    columns noisy, which biases least squares (errors in variables); the instruments' noise is independent
+    of theirs, so it does not."""
+    import numpy as np
+
     runs, samples = q.shape[:2]
     points = np.arange(edge, samples - edge, 10)
     first, last = (points[i] for i in np.triu_indices(len(points), 1))
+    work = _cumulative(power, dt)
     y = energy[:, last] - energy[:, first] - (work[:, last] - work[:, first])
-    a = np.concatenate(
-        [-(dissipated[:, last] - dissipated[:, first]), -(basis[:, last] - basis[:, first])], -1
-    )
+    a = _differences(q, qd, qd if other is None else other, dt, order, first, last)
+    z = a if instrument is None else _differences(q, instrument, instrument, dt, order, first, last)
     norm = np.linalg.norm(a.reshape(-1, a.shape[-1]), axis=0) + 1e-300
+    z_norm = np.linalg.norm(z.reshape(-1, z.shape[-1]), axis=0) + 1e-300
 
     def fit(rows):
-        theta, *_ = np.linalg.lstsq(a[rows].reshape(-1, a.shape[-1]) / norm, y[rows].reshape(-1), rcond=None)
+        columns, rhs = a[rows].reshape(-1, a.shape[-1]) / norm, y[rows].reshape(-1)
+        if instrument is not None:
+            instruments = z[rows].reshape(-1, z.shape[-1]) / z_norm
+            columns, rhs = instruments.T @ columns, instruments.T @ rhs
+        theta, *_ = np.linalg.lstsq(columns, rhs, rcond=None)
         return theta / norm
 
     theta = fit(np.arange(runs))
@@ -117,9 +167,12 @@ def balance(q, qd, energy, power, dt: float, order: int, edge: int, seed: int = 
     }
 
 
-def _from_state(frames, order: int, angles=None, smoothing: tuple[int, int] = (0, 0)) -> dict:
+def _from_state(
+    frames, order: int, angles=None, smoothing: tuple[int, int] = (0, 0), instrumented: bool = False
+) -> dict:
     """The balance on MuJoCo's states; with `angles`, on those joint angles instead (velocities by the
-    frames' filter), while the controls' work stays MuJoCo's own."""
+    frames' filter, or with `instrumented` by `_disjoint` and instrumental variables), while the controls'
+    work stays MuJoCo's own."""
     import mujoco
     import numpy as np
     from scipy.signal import savgol_filter
@@ -142,13 +195,19 @@ def _from_state(frames, order: int, angles=None, smoothing: tuple[int, int] = (0
         q = savgol_filter(angles, window, degree, axis=1)
         qd = savgol_filter(angles, window, degree, deriv=1, delta=frames.dt, axis=1)
         edge = window // 2
+        if instrumented:
+            qd, other, instrument = _disjoint(angles, window, degree, frames.dt, ends=qd)
+            zero = np.zeros(q.shape[:2])
+            fit = balance(q, qd, zero, power, frames.dt, order, edge, other=other, instrument=instrument)
+            return fit | {"units": "N m s"}
     return balance(q, qd, np.zeros(q.shape[:2]), power, frames.dt, order, edge=edge) | {"units": "N m s"}
 
 
 def _from_frames(frames, model, spec, order: int, windows) -> tuple:
     """The balance on the estimator's joints for each Savitzky-Golay window of `windows` (degree 3) and
-    for the window and degree that `cldyn.identify` would choose on these keypoints; the filters used; and
-    the estimator's error against MuJoCo (`_estimator_error`)."""
+    for the window and degree that `cldyn.identify` would choose on these keypoints, by least squares and
+    by instrumental variables (`_disjoint`); the filters used; and the estimator's error against MuJoCo
+    (`_estimator_error`)."""
     import equinox as eqx
     import jax
     import jax.numpy as jnp
@@ -182,27 +241,44 @@ def _from_frames(frames, model, spec, order: int, windows) -> tuple:
     energy_and_power = jax.jit(
         jax.vmap(lambda p, v, c: (dynamics.energy(p, v), v @ (dynamics.input_matrix(p) @ c)))
     )
+
+    def polarised(p, a, b, c):
+        # V + a^T M b / 2, since E(p, a + b) - E(p, a - b) = 2 a^T M b; the work with the mean velocity
+        kinetic = (dynamics.energy(p, a + b) - dynamics.energy(p, a - b)) / 4
+        return dynamics.energy(p, jnp.zeros_like(a)) + kinetic, (a + b) / 2 @ (dynamics.input_matrix(p) @ c)
+
+    polarised_energy_and_power = jax.jit(jax.vmap(polarised))
     choice = cldyn.Smoothing().choose(x, frames.dt)
     filters = {f"w = {w}": (w, 3) for w in windows}
     filters[f"w = {choice.window}, degree {choice.order} (identify's choice)"] = (choice.window, choice.order)
-    fits = {}
-    for label, (window, degree) in filters.items():
-        smooth = savgol_filter(q, window, degree, axis=1)
-        qd = savgol_filter(q, window, degree, deriv=1, delta=frames.dt, axis=1)
-        position, velocity = jax.vmap(lambda a, b: jax.jvp(joints.forward, (a,), (b,)))(
-            jnp.asarray(smooth.reshape(-1, 2)), jnp.asarray(qd.reshape(-1, 2))
-        )
-        energy, power = (
-            np.asarray(v).reshape(runs, samples) for v in energy_and_power(position, velocity, u)
-        )
-        fit = balance(smooth, qd, energy, power, frames.dt, order, edge=window // 2)
-        fits[label] = fit | {
+    tangent = jax.vmap(lambda a, b: jax.jvp(joints.forward, (a,), (b,)))
+
+    def converted(fit):
+        return fit | {
             "damping": fit["damping"] * joules,
             "interval": fit["interval"] * joules,
             "units": "N m s",
             "joules_per_model_unit": float(joules),
         }
-    return (fits, filters, *_estimator_error(q, np.asarray(frames.extras["qpos"], dtype=float)))
+
+    fits, instrumented = {}, {}
+    for label, (window, degree) in filters.items():
+        smooth = savgol_filter(q, window, degree, axis=1)
+        qd = savgol_filter(q, window, degree, deriv=1, delta=frames.dt, axis=1)
+        position, velocity = tangent(jnp.asarray(smooth.reshape(-1, 2)), jnp.asarray(qd.reshape(-1, 2)))
+        energy, power = (
+            np.asarray(v).reshape(runs, samples) for v in energy_and_power(position, velocity, u)
+        )
+        fits[label] = converted(balance(smooth, qd, energy, power, frames.dt, order, edge=window // 2))
+        qa, qb, qc = _disjoint(q, window, degree, frames.dt, ends=qd)
+        _, va = tangent(jnp.asarray(smooth.reshape(-1, 2)), jnp.asarray(qa.reshape(-1, 2)))
+        _, vb = tangent(jnp.asarray(smooth.reshape(-1, 2)), jnp.asarray(qb.reshape(-1, 2)))
+        energy, power = (
+            np.asarray(v).reshape(runs, samples) for v in polarised_energy_and_power(position, va, vb, u)
+        )
+        fit = balance(smooth, qa, energy, power, frames.dt, order, window // 2, other=qb, instrument=qc)
+        instrumented[label] = converted(fit)
+    return (fits, instrumented, filters, *_estimator_error(q, np.asarray(frames.extras["qpos"], dtype=float)))
 
 
 def _estimator_error(q, truth) -> tuple:
@@ -253,7 +329,11 @@ def _markdown(result: dict) -> str:
         "or as `cldyn.identify` would choose it on the estimated keypoints): of MuJoCo's angles as they "
         "are (`filtered`), warped by the estimator's pose-dependent error (`+ warp`), with noise of the "
         "size of its remaining error (`+ noise`), and of the estimator's own angles (`frames`, with the "
-        "learnt model's energy and input work).",
+        "learnt model's energy and input work). `instrumented`: the same fit by instrumental variables, "
+        "with three velocity estimates from disjoint samples of each filter's window (offsets 0, 1 and 2 "
+        "modulo 3): the columns are made of the first two, the instruments of the third, whose noise is "
+        "independent of theirs, so noise in the velocities does not bias the fit as it biases least "
+        "squares.",
     ]
     for name, entry in result["models"].items():
         lines += ["", f"## `{name}` (`{entry['model']}`)", ""]
@@ -287,16 +367,18 @@ def _cases(model, spec, protocol, args, measured: dict) -> dict:
 
     import keyvision
 
-    def state(data, frames, angles=None, smoothing=(0, 0)):
-        key = (data, smoothing)
+    def state(data, frames, angles=None, smoothing=(0, 0), instrumented=False):
+        key = (data, smoothing, instrumented)
         if key not in measured:
-            measured[key] = _from_state(frames, args.order, angles, smoothing)
+            measured[key] = _from_state(frames, args.order, angles, smoothing, instrumented)
         return measured[key]
 
     cases = {}
     for data, (source, truth) in SOURCES.items():
         frames = keyvision.render(source, protocol=protocol, seed=args.seed, workers=1)
-        from_frames, filters, error, warp, noise = _from_frames(frames, model, spec, args.order, args.windows)
+        from_frames, instrumented, filters, error, warp, noise = _from_frames(
+            frames, model, spec, args.order, args.windows
+        )
         angles = np.asarray(frames.extras["qpos"], dtype=float)
         jitter = noise * np.random.default_rng(1).standard_normal(angles.shape)
         windows = {}
@@ -306,6 +388,9 @@ def _cases(model, spec, protocol, args, measured: dict) -> dict:
                 "+ warp": _from_state(frames, args.order, angles + warp, smoothing),
                 "+ noise": _from_state(frames, args.order, angles + jitter, smoothing),
                 "frames": from_frames[label],
+                "filtered, instrumented": state(data, frames, angles, smoothing, instrumented=True),
+                "+ noise, instrumented": _from_state(frames, args.order, angles + jitter, smoothing, True),
+                "frames, instrumented": instrumented[label],
             }
             print(f"{data}, {label}: frames {from_frames[label]['damping']}", file=sys.stderr)
         cases[data] = {
