@@ -42,7 +42,7 @@ joint-angle error against MuJoCo (sign and offset aligned) and the part of it
 that is not a function of the pose. Writes benchmarks/results/vision_energy_balance.{json,md} (with a
 nonzero seed, `vision_energy_balance_seed<seed>.{json,md}`) and prints the JSON.
 
-    MUJOCO_GL=egl python benchmarks/vision_energy_balance.py   # about 25 min on 2 cores
+    MUJOCO_GL=egl python benchmarks/vision_energy_balance.py   # about 35 min on 2 cores
 """
 
 import argparse
@@ -389,7 +389,9 @@ def _cases(model, spec, protocol, args, measured: dict) -> dict:
                 "+ noise": _from_state(frames, args.order, angles + jitter, smoothing),
                 "frames": from_frames[label],
                 "filtered, instrumented": state(data, frames, angles, smoothing, instrumented=True),
-                "+ noise, instrumented": _from_state(frames, args.order, angles + jitter, smoothing, True),
+                "+ noise, instrumented": _from_state(
+                    frames, args.order, angles + jitter, smoothing, instrumented=True
+                ),
                 "frames, instrumented": instrumented[label],
             }
             print(f"{data}, {label}: frames {from_frames[label]['damping']}", file=sys.stderr)
