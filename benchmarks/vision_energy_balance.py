@@ -107,12 +107,11 @@ def _disjoint(q, window: int, degree: int, dt: float, ends) -> list:
     return estimates
 
 
-def _differences(q, qd, other, dt: float, order: int, first, last):
+def _differences(trig, qd, other, dt: float, first, last):
     """The fit's columns over the windows `[first, last]`: `-int qd_j other_j` and minus the change of the
-    basis (the potential's Fourier terms, and each symmetric velocity product times them)."""
+    basis (the potential's Fourier terms `trig`, and each symmetric velocity product times them)."""
     import numpy as np
 
-    trig = _fourier(q, order)
     basis = [trig[..., 1:]]  # the potential (its constant drops out of every difference)
     for i, j in ((0, 0), (0, 1), (1, 1)):
         product = (qd[..., i] * other[..., j] + other[..., i] * qd[..., j]) / 2
@@ -140,8 +139,9 @@ def balance(
     first, last = (points[i] for i in np.triu_indices(len(points), 1))
     work = _cumulative(power, dt)
     y = energy[:, last] - energy[:, first] - (work[:, last] - work[:, first])
-    a = _differences(q, qd, qd if other is None else other, dt, order, first, last)
-    z = a if instrument is None else _differences(q, instrument, instrument, dt, order, first, last)
+    trig = _fourier(q, order)
+    a = _differences(trig, qd, qd if other is None else other, dt, first, last)
+    z = a if instrument is None else _differences(trig, instrument, instrument, dt, first, last)
     norm = np.linalg.norm(a.reshape(-1, a.shape[-1]), axis=0) + 1e-300
     z_norm = np.linalg.norm(z.reshape(-1, z.shape[-1]), axis=0) + 1e-300
 
