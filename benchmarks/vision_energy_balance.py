@@ -141,9 +141,10 @@ def balance(
     y = energy[:, last] - energy[:, first] - (work[:, last] - work[:, first])
     trig = _fourier(q, order)
     a = _differences(trig, qd, qd if other is None else other, dt, first, last)
-    z = a if instrument is None else _differences(trig, instrument, instrument, dt, first, last)
     norm = np.linalg.norm(a.reshape(-1, a.shape[-1]), axis=0) + 1e-300
-    z_norm = np.linalg.norm(z.reshape(-1, z.shape[-1]), axis=0) + 1e-300
+    if instrument is not None:
+        z = _differences(trig, instrument, instrument, dt, first, last)
+        z_norm = np.linalg.norm(z.reshape(-1, z.shape[-1]), axis=0) + 1e-300
 
     def fit(rows):
         columns, rhs = a[rows].reshape(-1, a.shape[-1]) / norm, y[rows].reshape(-1)
@@ -189,7 +190,7 @@ def _from_state(
         joint = mujoco.mj_id2name(scene, mujoco.mjtObj.mjOBJ_JOINT, scene.actuator_trnid[a, 0])
         torque[..., JOINTS.index(joint)] = scene.actuator_gear[a, 0] * u
     power = (torque * true_qd).sum(-1)
-    edge = 0
+    edge, other, instrument = 0, None, None
     if angles is not None:
         window, degree = smoothing
         q = savgol_filter(angles, window, degree, axis=1)
@@ -197,10 +198,9 @@ def _from_state(
         edge = window // 2
         if instrumented:
             qd, other, instrument = _disjoint(angles, window, degree, frames.dt, ends=qd)
-            zero = np.zeros(q.shape[:2])
-            fit = balance(q, qd, zero, power, frames.dt, order, edge, other=other, instrument=instrument)
-            return fit | {"units": "N m s"}
-    return balance(q, qd, np.zeros(q.shape[:2]), power, frames.dt, order, edge=edge) | {"units": "N m s"}
+    zero = np.zeros(q.shape[:2])
+    fit = balance(q, qd, zero, power, frames.dt, order, edge, other=other, instrument=instrument)
+    return fit | {"units": "N m s"}
 
 
 def _from_frames(frames, model, spec, order: int, windows) -> tuple:
