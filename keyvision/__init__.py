@@ -2,7 +2,7 @@
 
 import importlib.metadata
 
-from ._assign import assign_keypoints as assign_keypoints
+from ._assign import assign_keypoints as assign_keypoints, constraint_score as constraint_score
 from ._augment import (
     Augment as Augment,
     restore_keypoints as restore_keypoints,
@@ -27,6 +27,7 @@ from ._estimator import (
 )
 from ._evaluate import (
     draw_keypoints as draw_keypoints,
+    encode_sequences as encode_sequences,
     keypoint_tracking as keypoint_tracking,
     pose_features as pose_features,
     predict as predict,
@@ -69,7 +70,6 @@ from ._renderer import (
 from ._train import (
     Schedule as Schedule,
     TrainResult as TrainResult,
-    encode_sequences as encode_sequences,
     train as train,
 )
 

@@ -12,9 +12,11 @@ from jaxtyping import Array, ArrayLike, Float
 
 import cldyn
 
-from ._data import Frames, as_images
+from ._data import Frames, ImageSequences, as_images
 from ._keypoints import frame_to_pixel
 from ._model import KeyCLD, parameter_dtype
+
+_ENCODE_FRAMES = 256  # frames per call when encoding a dataset: bounds the memory of the activations
 
 
 def pose_features(frames: Frames) -> Float[np.ndarray, "R T P"]:
@@ -327,6 +329,36 @@ def encode_batch(model: KeyCLD, frames: Array) -> Array:
     """The keypoints `(..., 2K)` of frames `(..., H, W, C)` of any dtype `as_images` takes (compiled
     once per model structure and shape)."""
     return model.encode(as_images(frames, parameter_dtype(model.estimator)))
+
+
+def encode_sequences(model: KeyCLD, data: ImageSequences) -> cldyn.Sequences:
+    """The keypoints of every frame of `data` as a `cldyn.Sequences` (with the controls and `dt`).
+
+    Frames are encoded a few hundred at a time, so a whole dataset fits in memory.
+
+    **Arguments:**
+
+    - `model`: a `keyvision.KeyCLD`.
+    - `data`: `keyvision.ImageSequences`.
+
+    **Returns:** `cldyn.Sequences` with `x` `(runs, T, 2K)` in the image frame.
+
+    !!! example
+
+        ```python
+        keypoints = keyvision.encode_sequences(model, data)
+        result = cldyn.fit(model.dynamics, keypoints, loss=cldyn.Collocation(), steps=2000, key=key)
+        ```
+    """
+    runs, samples = data.num_runs, data.num_samples
+    chunk = max(1, min(runs, _ENCODE_FRAMES // samples))
+    padded = -runs % chunk
+    frames = np.asarray(data.frames)
+    if padded:
+        frames = np.concatenate([frames, np.repeat(frames[-1:], padded, axis=0)], axis=0)
+    parts = [encode_batch(model, frames[i : i + chunk]) for i in range(0, runs + padded, chunk)]
+    x = jnp.concatenate(parts, axis=0)[:runs]
+    return cldyn.Sequences(x, jnp.asarray(data.u).astype(x.dtype), data.dt)
 
 
 @eqx.filter_jit

@@ -106,8 +106,8 @@ def _deserialise(path: pathlib.Path, like):
 
 def _load_stage(directory: pathlib.Path, spec: dict, like: KeyCLD, stage: str) -> KeyCLD:
     """The model as `keyvision.train` left it after `stage`, from the stages' `model-<stage>.eqx`."""
-    from ._assign import renumbered
-    from ._train import ORDER_NAME, read_order, stages_run
+    from ._assign import ORDER_NAME, read_order, renumbered
+    from ._train import stages_run
 
     stages = stages_run(spec.get("schedule") or {})
     if stage not in stages:
@@ -116,7 +116,7 @@ def _load_stage(directory: pathlib.Path, spec: dict, like: KeyCLD, stage: str) -
         )
     done = stages[: stages.index(stage) + 1]
     # the stages that train the networks (and the dynamics with them), saving the whole model
-    networks = [s for s in done if s in ("autoencoder", "rigid") or s.startswith("joint")]
+    networks = [s for s in done if s in ("autoencoder", "rigid") or s.startswith(("joint", "candidate-"))]
     if networks:
         model = _deserialise(directory / f"model-{networks[-1]}.eqx", like)
         after = done[done.index(networks[-1]) + 1 :]

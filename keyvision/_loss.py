@@ -153,12 +153,19 @@ class ConstraintDrift(AbstractLoss):
         values = jax.vmap(jax.vmap(constraint))(x)  # (windows, frames, constraints)
         if self.pooled:
             values = values.reshape(1, -1, values.shape[-1])  # one window of every frame
-        variance = jnp.var(values, axis=1)
-        if self.relative:
-            lengths = jnp.asarray(_distance_rows(constraint))
-            square = jnp.maximum(jnp.mean(values, axis=1) ** 2, jnp.finfo(values.dtype).tiny)
-            variance = jnp.where(lengths, variance / square, variance)
-        return jnp.mean(variance)
+        return constraint_drift(constraint, values, relative=self.relative)
+
+
+def constraint_drift(constraint, values: Array, *, relative: bool) -> Array:
+    """`ConstraintDrift`'s value from the constraint values `(windows, frames, constraints)`: each
+    constraint's variance along the frames of each window (over its mean square for a distance
+    with `relative`), averaged over windows and constraints."""
+    variance = jnp.var(values, axis=1)
+    if relative:
+        lengths = jnp.asarray(_distance_rows(constraint))
+        square = jnp.maximum(jnp.mean(values, axis=1) ** 2, jnp.finfo(values.dtype).tiny)
+        variance = jnp.where(lengths, variance / square, variance)
+    return jnp.mean(variance)
 
 
 def _distance_rows(constraint) -> tuple[bool, ...]:

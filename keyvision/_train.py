@@ -26,18 +26,16 @@ import cldyn
 from cldyn._fit import fit_files
 from cldyn._misc import atomic_save, atomic_write, check_positive
 
-from ._assign import assign_keypoints, renumbered
+from ._assign import assign_and_record, choose_candidate, rigid_order
 from ._augment import Augment
 from ._data import ImageSequences
-from ._evaluate import encode_batch
+from ._evaluate import encode_sequences
 from ._loss import ConstraintDrift, HeatmapRegulariser, KeypointDynamics, Reconstruction
 from ._model import KeyCLD
 
 _SCHEMA = "keyvision.Train/1"
 _STAGES = ("autoencoder", "dynamics", "joint")
-ORDER_NAME = "keypoint-order.json"  # the order of `assign_keypoints` after stage (a)
 _KEYPOINTS_SCHEMA = "keyvision.StageKeypoints/1"
-_ENCODE_FRAMES = 256  # frames per call when encoding a dataset: bounds the memory of the activations
 
 
 @dataclasses.dataclass(frozen=True)
@@ -49,6 +47,14 @@ class Schedule:
     - `autoencoder_steps`: steps of stage (a), estimator and renderer on single frames with
       `Reconstruction() + heatmap_weight * HeatmapRegulariser()`; the dynamics stay frozen.
     - `autoencoder_batch`: frames per step of stage (a), and of the rigid stage.
+    - `candidates`, `candidate_steps`: with `candidates` above 1, `keyvision.train` takes that many
+      initial models (the same networks drawn from different keys), gives each a trial of
+      `candidate_steps` steps of stage (a) (stages `candidate-1`, `candidate-2`, ...), and stage (a)
+      continues the one whose keypoints best keep the constraints (`keyvision.constraint_score` on
+      the training frames, no ground truth). Reconstruction alone settles early where an autoencoder
+      puts its keypoints, and not always on the joints: of three cart-pole seeds one put both
+      keypoints on one point of the pole, and no later stage separated them (`docs/ablation.md`).
+      Needs dynamics with constraints.
     - `rigid_steps`: steps of the rigid stage (0 leaves it out), between stage (a) and stage (b):
       the keypoints numbered after the constraints (`keyvision.assign_keypoints`), then the
       estimator and renderer trained further on single frames with stage (a)'s loss plus
@@ -119,6 +125,8 @@ class Schedule:
 
     autoencoder_steps: int = 2000
     autoencoder_batch: int = 64
+    candidates: int = 1
+    candidate_steps: int = 300
     rigid_steps: int = 0
     rigid_weight: float = 0.01
     dynamics_steps: int = 2000
@@ -149,8 +157,8 @@ class Schedule:
     def __post_init__(self):
         for name in ("autoencoder_steps", "rigid_steps", "dynamics_steps", "joint_steps", "refit_steps"):
             check_positive(f"Schedule: {name}", getattr(self, name), integer=True, allow_zero=True)
-        for name in ("autoencoder_batch", "dynamics_batch", "joint_batch", "refit_batch", "window",
-                     "rounds", "log_every", "checkpoint_every"):
+        for name in ("autoencoder_batch", "candidates", "candidate_steps", "dynamics_batch", "joint_batch",
+                     "refit_batch", "window", "rounds", "log_every", "checkpoint_every"):
             check_positive(f"Schedule: {name}", getattr(self, name), integer=True)
         for name in ("learning_rate", "dynamics_learning_rate", "joint_learning_rate", "final_learning_rate"):
             if name != "dynamics_learning_rate" or self.dynamics_learning_rate is not None:
@@ -219,41 +227,14 @@ class TrainResult:
       among them).
     - `keypoint_order`: how `keyvision.assign_keypoints` renumbered the keypoints of stage (a)
       (keypoint `k` is the autoencoder's keypoint `keypoint_order[k]`), or `None` if it did not run.
+    - `candidates`: with `Schedule.candidates` above 1, the candidates' trial stages, their
+      `keyvision.constraint_score` and the stage chosen (`{"stages", "scores", "chosen"}`); else `None`.
     """
 
     model: KeyCLD
     stages: dict
     keypoint_order: tuple[int, ...] | None = None
-
-
-def encode_sequences(model: KeyCLD, data: ImageSequences) -> cldyn.Sequences:
-    """The keypoints of every frame of `data` as a `cldyn.Sequences` (with the controls and `dt`).
-
-    Frames are encoded a few hundred at a time, so a whole dataset fits in memory.
-
-    **Arguments:**
-
-    - `model`: a `keyvision.KeyCLD`.
-    - `data`: `keyvision.ImageSequences`.
-
-    **Returns:** `cldyn.Sequences` with `x` `(runs, T, 2K)` in the image frame.
-
-    !!! example
-
-        ```python
-        keypoints = keyvision.encode_sequences(model, data)
-        result = cldyn.fit(model.dynamics, keypoints, loss=cldyn.Collocation(), steps=2000, key=key)
-        ```
-    """
-    runs, samples = data.num_runs, data.num_samples
-    chunk = max(1, min(runs, _ENCODE_FRAMES // samples))
-    padded = -runs % chunk
-    frames = np.asarray(data.frames)
-    if padded:
-        frames = np.concatenate([frames, np.repeat(frames[-1:], padded, axis=0)], axis=0)
-    parts = [encode_batch(model, frames[i : i + chunk]) for i in range(0, runs + padded, chunk)]
-    x = jnp.concatenate(parts, axis=0)[:runs]
-    return cldyn.Sequences(x, jnp.asarray(data.u).astype(x.dtype), data.dt)
+    candidates: dict | None = None
 
 
 def _stage_keypoints(
@@ -315,49 +296,6 @@ def _stage_keypoints(
     return keypoints, validation_keypoints
 
 
-def _assign(model: KeyCLD, keypoints: cldyn.Sequences, out: pathlib.Path | None):
-    """`assign_keypoints`, and the order recorded in `out` (what `keyvision.load_model` needs to
-    rebuild the stages after stage (a))."""
-    model, order = assign_keypoints(model, keypoints)
-    if out is not None:
-        atomic_write(out / ORDER_NAME, json.dumps({"keypoint_order": list(order)}))
-    return model, order
-
-
-def read_order(path: pathlib.Path) -> tuple:
-    """The keypoint order that `_assign` recorded in `path`: a `FileNotFoundError` if there is none,
-    a `ValueError` (holding the reason) if it cannot be read."""
-    try:
-        return tuple(json.loads(path.read_text())["keypoint_order"])
-    except FileNotFoundError:
-        raise
-    except (OSError, UnicodeDecodeError, json.JSONDecodeError, KeyError, TypeError) as error:
-        raise ValueError(repr(error)) from None
-
-
-def _rigid_order(model: KeyCLD, data: ImageSequences, out: pathlib.Path | None, resume: bool):
-    """The rigid stage's numbering: on resume, once that stage has checkpointed, the order it
-    recorded (the networks it fitted were numbered so; encoding every training frame again would
-    only repeat it, and on a GPU need not reproduce it bitwise); otherwise `_assign` afresh."""
-    path = None if out is None else out / ORDER_NAME
-    if not (resume and path is not None and fit_files(out, "rigid")["checkpoint"].exists()):
-        return _assign(model, encode_sequences(model, data), out)
-    try:
-        order = read_order(path)
-        valid = sorted(order) == list(range(model.num_keypoints))
-    except (OSError, ValueError, TypeError) as error:  # absent, unreadable, or entries that do not sort
-        order, valid = error, False
-    if not valid:
-        raise cldyn.CheckpointError(
-            f"{path}: not the keypoint order of {model.num_keypoints} keypoints that the checkpoint of "
-            f"stage 'rigid' was numbered by (read: {order}); delete it and checkpoint-rigid.eqx to run "
-            "that stage afresh"
-        )
-    if order != tuple(range(model.num_keypoints)):
-        model = renumbered(model, order)
-    return model, order
-
-
 def stage_names(round_: int) -> tuple[str, str]:
     """The names of the joint and refit stages of a round (1, 2, ...): `joint`, `refit`, then
     `joint-2`, `refit-2`, ..."""
@@ -365,9 +303,15 @@ def stage_names(round_: int) -> tuple[str, str]:
     return f"joint{suffix}", f"refit{suffix}"
 
 
+def candidate_stages(count: int) -> list[str]:
+    """The names of the trial stages of `count` candidates: none for one, else `candidate-1`, ..."""
+    return [f"candidate-{k}" for k in range(1, count + 1)] if count > 1 else []
+
+
 def stages_run(schedule: dict) -> list[str]:
     """The names of the stages that a schedule (`Schedule.describe()`) runs, in order."""
-    names = [name for name in ("autoencoder", "rigid", "dynamics") if schedule.get(f"{name}_steps")]
+    names = candidate_stages(int(schedule.get("candidates", 1))) if schedule.get("autoencoder_steps") else []
+    names += [name for name in ("autoencoder", "rigid", "dynamics") if schedule.get(f"{name}_steps")]
     for round_ in range(1, int(schedule.get("rounds", 1)) + 1):
         joint, refit = stage_names(round_)
         names += [joint] if schedule.get("joint_steps") else []
@@ -383,6 +327,8 @@ def _stage_key(key, stage: str):
     if stage == "rigid":
         return jax.random.fold_in(key, 1)  # the rounds fold in 2 and up
     name, _, number = stage.partition("-")
+    if name == "candidate":
+        return jax.random.fold_in(jax.random.fold_in(key, 0), int(number))
     round_ = int(number) if number else 1
     return jax.random.fold_in(key, 2 * round_ + (1 if name == "refit" else 0))
 
@@ -412,7 +358,7 @@ def _key_data(key) -> list[int]:
 
 
 def train(
-    model: KeyCLD,
+    model: KeyCLD | Sequence[KeyCLD],
     data: ImageSequences,
     *,
     key: PRNGKeyArray,
@@ -426,7 +372,9 @@ def train(
     """Train a KeyCLD model on frames, unsupervised, in four stages of `cldyn.fit`.
 
     1. `"autoencoder"`: the estimator and the renderer on single frames (reconstruction, eq. 10,
-       plus the heatmap regulariser); the dynamics are frozen. With `schedule.rigid_steps`, then
+       plus the heatmap regulariser); the dynamics are frozen. With `schedule.candidates` above 1
+       it starts from the best of several candidates after a short trial of each (see `Schedule`).
+       With `schedule.rigid_steps`, then
        `"rigid"`: the keypoints numbered after the constraints (`keyvision.assign_keypoints`) and the
        networks trained further with the relative constraint drift added (see `Schedule`).
     2. `"dynamics"`: the frames are encoded once by the frozen estimator
@@ -448,7 +396,8 @@ def train(
 
     **Arguments:**
 
-    - `model`: the `keyvision.KeyCLD` to train.
+    - `model`: the `keyvision.KeyCLD` to train, or a sequence of `schedule.candidates` of them
+      (the same networks from different keys) to choose from.
     - `data`: the training `keyvision.ImageSequences`.
     - `key`: a `jax.random` key for the batches.
     - `schedule`: a `keyvision.Schedule` (steps, batches, weights, learning rates).
@@ -470,17 +419,27 @@ def train(
                                  progress_meter=cldyn.TextProgressMeter())
         ```
     """
-    if not isinstance(model, KeyCLD):
-        raise TypeError(f"train: model must be a keyvision.KeyCLD, got {type(model).__name__}")
-    if not isinstance(data, ImageSequences):
-        raise TypeError(f"train: data must be keyvision.ImageSequences, got {type(data).__name__}")
     if not isinstance(schedule, Schedule):
         raise TypeError(f"train: schedule must be a keyvision.Schedule, got {type(schedule).__name__}")
-    if schedule.rigid_steps and getattr(model.dynamics, "constraint", None) is None:
-        raise ValueError(
-            "train: the rigid stage (Schedule.rigid_steps) needs dynamics with constraints, got "
-            f"{type(model.dynamics).__name__} without any"
-        )
+    models = list(model) if isinstance(model, Sequence) else [model]
+    for candidate in models:
+        if not isinstance(candidate, KeyCLD):
+            raise TypeError(f"train: model must be a keyvision.KeyCLD, got {type(candidate).__name__}")
+    if len(models) != schedule.candidates:
+        raise ValueError(f"train: {len(models)} models given for Schedule.candidates = {schedule.candidates}")
+    model = models[0]
+    if not isinstance(data, ImageSequences):
+        raise TypeError(f"train: data must be keyvision.ImageSequences, got {type(data).__name__}")
+    needs = {"the rigid stage": "rigid_steps"} if schedule.rigid_steps else {}
+    needs.update({"choosing among candidates": "candidates"} if schedule.candidates > 1 else {})
+    for what, name in needs.items():
+        if getattr(model.dynamics, "constraint", None) is None:
+            raise ValueError(
+                f"train: {what} (Schedule.{name} = {getattr(schedule, name)}) needs dynamics with "
+                f"constraints, got {type(model.dynamics).__name__} without any"
+            )
+    if schedule.candidates > 1 and not schedule.autoencoder_steps:
+        raise ValueError("train: Schedule.candidates chooses among autoencoders: it needs autoencoder_steps")
     schedule = for_dynamics(schedule, model.dynamics)
     keys = dict(zip(_STAGES, jax.random.split(key, 3)))
     if out is not None:
@@ -515,33 +474,40 @@ def train(
         windows = cldyn.Windows(batch_size, length)
         return Augment(windows) if schedule.augment else windows
 
-    if schedule.autoencoder_steps:
-        stages["autoencoder"] = cldyn.fit(
-            model, data, loss=images_loss, steps=schedule.autoencoder_steps, key=keys["autoencoder"],
-            optimizer=_adam(schedule, schedule.learning_rate, schedule.autoencoder_steps),
+    def networks_fit(model: KeyCLD, stage: str, loss, steps: int, stage_key) -> cldyn.FitResult:
+        # the stages of single frames that train the networks alone: trials, (a) and rigid
+        stages[stage] = cldyn.fit(
+            model, data, loss=loss, steps=steps, key=stage_key,
+            optimizer=_adam(schedule, schedule.learning_rate, steps),
             batching=frames_batching(schedule.autoencoder_batch, 1),
-            validation=validation, trainable=_networks_only, stage="autoencoder", loop=images_loop, **common,
+            validation=validation, trainable=_networks_only, stage=stage, loop=images_loop, **common,
         )
-        model = stages["autoencoder"].model
+        return stages[stage].model
+
+    chosen = None
+    if schedule.candidates > 1:
+        for stage, candidate in zip(candidate_stages(schedule.candidates), models):
+            networks_fit(candidate, stage, images_loss, schedule.candidate_steps, _stage_key(key, stage))
+        chosen = choose_candidate(
+            {stage: stages[stage] for stage in candidate_stages(schedule.candidates)}, data, out, resume
+        )
+        model = stages[chosen["chosen"]].model
+    if schedule.autoencoder_steps:
+        steps = schedule.autoencoder_steps
+        model = networks_fit(model, "autoencoder", images_loss, steps, keys["autoencoder"])
 
     order = None
     if schedule.rigid_steps:
-        model, order = _rigid_order(model, data, out, resume)
+        model, order = rigid_order(model, data, out, resume)
         rigid_loss = images_loss + schedule.rigid_weight * ConstraintDrift(pooled=True, relative=True)
-        stages["rigid"] = cldyn.fit(
-            model, data, loss=rigid_loss, steps=schedule.rigid_steps, key=_stage_key(key, "rigid"),
-            optimizer=_adam(schedule, schedule.learning_rate, schedule.rigid_steps),
-            batching=frames_batching(schedule.autoencoder_batch, 1),
-            validation=validation, trainable=_networks_only, stage="rigid", loop=images_loop, **common,
-        )
-        model = stages["rigid"].model
+        model = networks_fit(model, "rigid", rigid_loss, schedule.rigid_steps, _stage_key(key, "rigid"))
 
     if schedule.dynamics_steps:
         keypoints, validation_keypoints = _stage_keypoints(model, data, validation, out, "dynamics", resume)
         # after the rigid stage the estimator already gives its keypoints in the constraints' order
         renumber = order is None
         if renumber:
-            model, order = _assign(model, keypoints, out)
+            model, order = assign_and_record(model, keypoints, out)
         index = np.asarray([2 * k + c for k in order for c in (0, 1)])
 
         def ordered(sequences):
@@ -593,5 +559,5 @@ def train(
                 stage=refit, **common,
             )
             model = eqx.tree_at(lambda m: m.dynamics, model, stages[refit].model)
-    return TrainResult(model=model, stages=stages, keypoint_order=order)
+    return TrainResult(model=model, stages=stages, keypoint_order=order, candidates=chosen)
 

@@ -3,6 +3,7 @@ the keypoints renumbered, and the assignment finds the order in which keypoints 
 constraints (the cart at a fixed height, the pole's end at a fixed distance from it)."""
 
 import itertools
+import json
 
 import equinox as eqx
 import jax
@@ -98,3 +99,131 @@ def test_an_estimator_without_permute_keeps_the_identity_and_refuses_a_renumberi
         estimator.permute([1, 0])
     with pytest.raises(ValueError, match="permutation of 0..1"):
         estimator.permute([0, 0])
+
+
+# -- choosing among autoencoders by their constraints -----------------------------------------------
+
+
+def _cartpole_model():
+    keys = jax.random.split(jax.random.key(1), 3)
+    return keyvision.KeyCLD(
+        keyvision.KeypointEstimator(2, width=8, image_size=SIZE, key=keys[0]),
+        cldyn.keycld_model(4, 1, cldyn.keycld_constraint("cartpole"), key=keys[1], width=8),
+        keyvision.Renderer(2, width=8, image_size=SIZE, key=keys[2]),
+    )
+
+
+def test_constraint_score_is_zero_for_rigid_keypoints_and_the_relative_spread_of_a_sliding_one():
+    model = _cartpole_model()
+    # the cart at a fixed height and the pole's end at a fixed distance, in either numbering
+    for cart_first in (True, False):
+        rigid = cldyn.Sequences(_cartpole_keypoints(cart_first=cart_first), None, 0.05)
+        assert keyvision.constraint_score(model, rigid) < 1e-10
+    # the second keypoint slides along the pole, at 0.3 to 0.5 of it: the cart's height keeps, the
+    # length's variance over its mean square (numpy, over every frame) is half the score (two
+    # constraints); scaling the picture changes neither term's relative part
+    x = _cartpole_keypoints(cart_first=True).astype(np.float64)
+    rng = np.random.default_rng(5)
+    fraction = rng.uniform(0.6, 1.0, x.shape[:2])
+    x[..., 2:] = x[..., :2] + fraction[..., None] * (x[..., 2:] - x[..., :2])
+    length = np.hypot(*np.moveaxis(x[..., 2:] - x[..., :2], -1, 0))
+    expected = 0.5 * length.var() / length.mean() ** 2
+    sliding = cldyn.Sequences(x.astype(np.float32), None, 0.05)
+    assert keyvision.constraint_score(model, sliding) == pytest.approx(expected, rel=1e-4)
+    # the cart off its rail adds the variance of its height (a coordinate, not relative)
+    x[..., 1] += 0.05 * rng.standard_normal(x.shape[:2])
+    length = np.hypot(*np.moveaxis(x[..., 2:] - x[..., :2], -1, 0))
+    expected = 0.5 * (x[..., 1].var() + length.var() / length.mean() ** 2)
+    assert keyvision.constraint_score(model, cldyn.Sequences(x.astype(np.float32), None, 0.05)) == (
+        pytest.approx(expected, rel=1e-4)
+    )
+    unconstrained = cldyn.keycld_model(4, 1, None, key=jax.random.key(2), width=8)
+    free = eqx.tree_at(lambda m: m.dynamics, model, unconstrained)
+    with pytest.raises(ValueError, match="needs dynamics with constraints"):
+        keyvision.constraint_score(free, sliding)
+    with pytest.raises(ValueError, match="keypoints of 2 coordinates for a model of 2 keypoints"):
+        keyvision.constraint_score(model, cldyn.Sequences(x[..., :2].astype(np.float32), None, 0.05))
+
+
+class _Centroid(keyvision.AbstractKeypointEstimator):
+    """A hand-written estimator: the centroid of the bright pixels, its height scaled by `squash`
+    (1: the disc's centre; below 1 a point that no longer keeps its distance from the pivot)."""
+
+    squash: float
+    num_keypoints: int = 1
+    image_size: int = SIZE
+
+    def __call__(self, image):
+        weight = jnp.mean(image, axis=-1) - 0.1
+        centres = ((2 * jnp.arange(SIZE) + 1) / SIZE - 1).astype(image.dtype)
+        x = jnp.sum(weight * centres[None, :]) / jnp.sum(weight)
+        y = jnp.sum(weight * -centres[:, None]) / jnp.sum(weight)
+        return jnp.stack([x, jnp.asarray(self.squash, image.dtype) * y])[None]
+
+
+def _disc_frames(runs=4, samples=6, radius=0.6):
+    """uint8 frames of a disc at `radius` from the image centre at random angles (a pendulum's bob)."""
+    rng = np.random.default_rng(3)
+    angles = rng.uniform(-np.pi, np.pi, (runs, samples))
+    bob = radius * np.stack([np.sin(angles), -np.cos(angles)], axis=-1)
+    centres = (2 * np.arange(SIZE) + 1) / SIZE - 1
+    xs, ys = np.meshgrid(centres, -centres)
+    distance = np.hypot(xs - bob[..., 0, None, None], ys - bob[..., 1, None, None])
+    cover = np.clip((0.2 - distance) * SIZE / 2 + 0.5, 0, 1)
+    images = 0.1 + 0.8 * cover[..., None] * np.ones(3)
+    frames = np.round(255 * images).astype(np.uint8)
+    return keyvision.ImageSequences(frames, np.zeros((runs, samples, 1), np.float32), 0.1), bob
+
+
+def test_training_continues_the_candidate_whose_keypoints_keep_the_constraints(tmp_path, monkeypatch):
+    # two candidates with the same renderer and dynamics: the first's keypoint is the disc's centre
+    # squashed to half its height (its distance from the pivot swings), the second's the centre. The
+    # trials train only the renderers (these estimators have no parameters); the second is chosen,
+    # and the scores are the relative spreads of the distances (numpy on the true positions, within
+    # the centroid's error of a few thousandths)
+    data, bob = _disc_frames()
+    keys = jax.random.split(jax.random.key(0), 2)
+    dynamics = cldyn.keycld_model(2, 1, cldyn.keycld_constraint("pendulum"), key=keys[0], width=8)
+    renderer = keyvision.Renderer(1, width=8, image_size=SIZE, key=keys[1])
+    float32 = eqx.filter_jit(
+        lambda tree: jax.tree.map(lambda a: a.astype(jnp.float32) if eqx.is_inexact_array(a) else a, tree)
+    )
+    dynamics, renderer = float32(dynamics), float32(renderer)
+    candidates = [keyvision.KeyCLD(_Centroid(squash), dynamics, renderer) for squash in (0.5, 1.0)]
+    schedule = keyvision.Schedule(
+        candidates=2, candidate_steps=2, autoencoder_steps=2, autoencoder_batch=4, dynamics_steps=0,
+        joint_steps=0, refit_steps=0, heatmap_weight=0.0, log_every=1,
+    )
+    result = keyvision.train(candidates, data, key=jax.random.key(1), schedule=schedule, out=tmp_path)
+    assert list(result.stages) == ["candidate-1", "candidate-2", "autoencoder"]
+    assert result.candidates["chosen"] == "candidate-2"
+    squashed = np.hypot(bob[..., 0], 0.5 * bob[..., 1])
+    good, bad = result.candidates["scores"][1], result.candidates["scores"][0]
+    assert bad == pytest.approx(squashed.var() / squashed.mean() ** 2, rel=0.05)
+    assert good < 0.01 * bad
+    record = json.loads((tmp_path / "candidates.json").read_text())
+    assert record["chosen"] == "candidate-2" and record["scores"] == result.candidates["scores"]
+    assert isinstance(result.model.estimator, _Centroid) and result.model.estimator.squash == 1.0
+    # resumed, the finished trials are read back and the recorded choice is kept: nothing is encoded
+    monkeypatch.setattr(keyvision._assign, "encode_sequences", _no_encoding)
+    resumed = keyvision.train(candidates, data, key=jax.random.key(1), schedule=schedule, out=tmp_path,
+                              resume=True)
+    assert resumed.candidates == result.candidates
+    # a damaged record after stage (a) started from it is named, and nothing is overwritten
+    (tmp_path / "candidates.json").write_text("{")
+    checkpoint = (tmp_path / "checkpoint-autoencoder.eqx").read_bytes()
+    with pytest.raises(cldyn.CheckpointError, match="candidates.json: not a choice among the candidates"):
+        keyvision.train(candidates, data, key=jax.random.key(1), schedule=schedule, out=tmp_path, resume=True)
+    assert (tmp_path / "checkpoint-autoencoder.eqx").read_bytes() == checkpoint
+    # the number of models must match the schedule, and a model without constraints has nothing to go by
+    with pytest.raises(ValueError, match="1 models given for Schedule.candidates = 2"):
+        keyvision.train(candidates[0], data, key=jax.random.key(1), schedule=schedule)
+    unconstrained = cldyn.keycld_model(2, 1, None, key=keys[0], width=8)
+    free = [eqx.tree_at(lambda m: m.dynamics, c, unconstrained) for c in candidates]
+    refused = r"choosing among candidates \(Schedule.candidates = 2\) needs dynamics with constraints"
+    with pytest.raises(ValueError, match=refused):
+        keyvision.train(free, data, key=jax.random.key(1), schedule=schedule)
+
+
+def _no_encoding(*_):
+    raise AssertionError("the frames were encoded again")

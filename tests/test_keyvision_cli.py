@@ -109,12 +109,13 @@ def test_train_needs_constraints_for_a_scene_not_of_keycld(tmp_path, capsys):
     assert not (tmp_path / "out").exists()
 
 
-def test_the_rigid_stage_needs_constraints(tmp_path, capsys):
+@pytest.mark.parametrize("option", ["--rigid-steps", "--candidates"])
+def test_the_rigid_stage_and_the_candidates_need_constraints(option, tmp_path, capsys):
     data = _fake_frames(tmp_path / "frames.npz")
     status, _, err = _run(capsys, ["train", "--data", data, "--out", tmp_path / "out", "--model", "nc",
-                                   "--rigid-steps", 5])
+                                   option, 5])
     assert status == 2
-    assert "--rigid-steps: --model nc has no constraints" in _error_line(err, "train")
+    assert f"{option}: --model nc has no constraints" in _error_line(err, "train")
     assert not (tmp_path / "out").exists()
 
 
@@ -168,11 +169,15 @@ def test_render_train_evaluate(tmp_path, capsys):
     # the joint stage is covered by the library's tests; its compilation would double this test's time
     train = ["train", "--data", data, "--out", model, "--width", 4, "--dynamics-width", 8]
     train += ["--autoencoder-steps", 2, "--dynamics-steps", 2, "--joint-steps", 0, "--refit-steps", 0]
-    train += ["--no-progress"]
+    train += ["--candidates", 2, "--candidate-steps", 2, "--no-progress"]  # stage (a)'s compiled step
     status, out, err = _run(capsys, train)
     assert status == 0, err
     summary = json.loads(out)
     assert summary["autoencoder"]["steps"] == 2 and summary["dynamics"]["steps"] == 2
+    # two initialisations tried, stage (a) continued the one of the lower constraint score
+    scores = [summary["candidates"][f"candidate-{k}"] for k in (1, 2)]
+    assert summary["candidates"]["chosen"] == f"candidate-{1 + int(np.argmin(scores))}"
+    assert summary["candidate-1"]["steps"] == summary["candidate-2"]["steps"] == 2
     spec = json.loads((model / "keyvision.json").read_text())
     assert spec["keypoints"] == 1 and spec["dynamics"]["constraint"] == "pendulum"
     assert (model / "model.eqx").is_file()

@@ -562,6 +562,7 @@ def test_the_rigid_stage_draws_the_keypoint_to_a_fixed_distance_from_the_pivot(t
 
     with pytest.MonkeyPatch.context() as patch:
         patch.setattr(keyvision_train, "encode_sequences", no_encoding)
+        patch.setattr(keyvision._assign, "encode_sequences", no_encoding)
         resumed = keyvision.train(autoencoder, data, key=jax.random.key(2), schedule=schedule, out=tmp_path,
                                   resume=True)
     _assert_bitwise_equal(resumed.model, rigid.model)

@@ -24,6 +24,7 @@ from cldyn._cli._common import (
 )
 from cldyn._keycld import KEYCLD_SCENES, MODEL_KINDS
 
+from .._assign import CHOICE_NAME
 from .._files import INITIAL_NAME
 from ._common import MODEL_NAME, SPEC_NAME, frames_file
 
@@ -136,6 +137,20 @@ def register(subparsers) -> None:
         "--joint-batch", type=count, default=default.joint_batch, help="windows per step of stage (c)"
     )
     parser.add_argument(
+        "--candidates",
+        type=count,
+        default=default.candidates,
+        help="initialise the networks this many times (from keys drawn from --seed), give each a trial of "
+        "--candidate-steps steps of stage (a), and continue the one whose keypoints best keep the "
+        "constraints (keyvision.constraint_score, no ground truth); 1 trains one initialisation",
+    )
+    parser.add_argument(
+        "--candidate-steps",
+        type=count,
+        default=default.candidate_steps,
+        help="steps of each candidate's trial (with --candidates above 1)",
+    )
+    parser.add_argument(
         "--rigid-steps",
         type=positive(integer=True, allow_zero=True),
         default=default.rigid_steps,
@@ -219,6 +234,13 @@ def _model_spec(args: argparse.Namespace, frames) -> dict:
         )
     if args.rigid_steps and not args.model.startswith("keycld"):
         raise CommandError(f"--rigid-steps: --model {args.model} has no constraints to keep rigid")
+    if args.candidates > 1 and not args.model.startswith("keycld"):
+        raise CommandError(f"--candidates: --model {args.model} has no constraints to choose by")
+    if args.candidates > 1 and (args.networks_from is not None or not args.autoencoder_steps):
+        raise CommandError(
+            "--candidates: chooses among autoencoders, so it needs stage (a) (--autoencoder-steps, no "
+            "--networks-from)"
+        )
     node2 = args.model == "node2"
     keypoints = len(frames.info["keypoint_names"])
     networks = {} if args.networks == "unet" else {"networks": args.networks}  # older specs have no entry
@@ -254,11 +276,11 @@ def _check_frames(args: argparse.Namespace, frames) -> None:
         )
 
 
-def _stages(rounds: int) -> list[str]:
-    from keyvision._train import stage_names
+def _stages(args: argparse.Namespace) -> list[str]:
+    from keyvision._train import candidate_stages, stage_names
 
-    later = (name for r in range(1, rounds + 1) for name in stage_names(r))
-    return ["autoencoder", "rigid", "dynamics", *later]
+    later = (name for r in range(1, args.rounds + 1) for name in stage_names(r))
+    return [*candidate_stages(args.candidates), "autoencoder", "rigid", "dynamics", *later]
 
 
 def _networks_source(directory: str, spec: dict, frames) -> dict:
@@ -296,12 +318,12 @@ def _more_rounds(previous, schedule: dict) -> bool:
     return previous["rounds"] <= schedule["rounds"] and {**previous, "rounds": schedule["rounds"]} == schedule
 
 
-def _checkpointed(out, rounds: int) -> bool:
-    return any((out / f"checkpoint-{stage}.eqx").exists() for stage in _stages(rounds))
+def _checkpointed(out, args: argparse.Namespace) -> bool:
+    return any((out / f"checkpoint-{stage}.eqx").exists() for stage in _stages(args))
 
 
 def _interrupted(args: argparse.Namespace, out) -> int:
-    if _checkpointed(out, args.rounds):
+    if _checkpointed(out, args):
         argv = [a for a in args.argv if a != "--overwrite"]
         argv += [] if "--resume" in argv else ["--resume"]
         where = "continue with:\n  " + shlex.join(["keyvision", *argv])
@@ -321,7 +343,7 @@ def run(args: argparse.Namespace) -> int:
     if not args.resume:
         refuse_existing(
             [out / name for name in (SPEC_NAME, MODEL_NAME, "train.json")]
-            + [out / f"{name}-{stage}.{ext}" for stage in _stages(args.rounds) for name, ext in _STAGE_FILES],
+            + [out / f"{name}-{stage}.{ext}" for stage in _stages(args) for name, ext in _STAGE_FILES],
             overwrite=args.overwrite,
             hint="pass --resume to continue that training or --overwrite to start afresh",
         )
@@ -347,6 +369,10 @@ def run(args: argparse.Namespace) -> int:
         model = keyvision.model_from_spec(spec, key=model_key)
     except ValueError as error:
         raise CommandError(f"--constraint {spec['dynamics']['constraint']}: {error}") from None
+    # the first candidate is the model of --seed alone; the others fold their number into its key
+    candidates = [model]
+    for k in range(1, args.candidates):
+        candidates.append(keyvision.model_from_spec(spec, key=jax.random.fold_in(model_key, k)))
     schedule = dataclasses.replace(
         keyvision.Schedule(),
         autoencoder_steps=0 if source is not None else args.autoencoder_steps,
@@ -360,6 +386,8 @@ def run(args: argparse.Namespace) -> int:
         dynamics_learning_rate=args.dynamics_lr,
         warmup_steps=args.warmup_steps,
         autoencoder_batch=args.autoencoder_batch,
+        candidates=args.candidates,
+        candidate_steps=args.candidate_steps,
         rigid_steps=args.rigid_steps,
         rigid_weight=args.rigid_weight,
         joint_batch=args.joint_batch,
@@ -419,9 +447,11 @@ def run(args: argparse.Namespace) -> int:
         atomic_save(initial, lambda temporary: eqx.tree_serialise_leaves(temporary, model))
     elif source is None and not args.resume:
         initial.unlink(missing_ok=True)  # an earlier training's, replaced by --overwrite
+    if not args.resume:
+        (out / CHOICE_NAME).unlink(missing_ok=True)
     try:
         result = keyvision.train(
-            model,
+            candidates if args.candidates > 1 else model,
             keyvision.ImageSequences.from_frames(train_frames),
             key=train_key,
             schedule=schedule,
@@ -431,7 +461,7 @@ def run(args: argparse.Namespace) -> int:
             progress_meter=cldyn.TextProgressMeter() if args.progress else cldyn.NoProgressMeter(),
         )
     except BaseException as error:
-        if fresh and not _checkpointed(out, args.rounds):
+        if fresh and not _checkpointed(out, args):
             for name in (SPEC_NAME, "train.json", INITIAL_NAME):  # nothing to resume: leave --out as it was
                 (out / name).unlink(missing_ok=True)
             if created and not any(out.iterdir()):
@@ -448,5 +478,8 @@ def run(args: argparse.Namespace) -> int:
             "loss": last.get("loss"),
             "validation": last.get("validation"),
         }
+    if result.candidates is not None:
+        record = result.candidates
+        summary["candidates"] = {**dict(zip(record["stages"], record["scores"])), "chosen": record["chosen"]}
     print(json.dumps(summary))
     return 0
