@@ -58,6 +58,8 @@ RECIPE = {
     "dynamics_weight": (float, 60.0),
     "constraint_weight": (float, 10.0),
     "constraint_drift": (str, "window"),
+    "candidates": (int, 1),
+    "candidate_steps": (int, 500),
 }
 
 

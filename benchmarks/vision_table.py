@@ -307,6 +307,12 @@ def main() -> None:
         default=1,
         help="trainings at once, each its own process (several share a GPU well; 1 on 2 CPU cores)",
     )
+    parser.add_argument(
+        "--pair-autoencoders",
+        action="store_true",
+        help="start each seed s of an ablation of the dynamics from the autoencoder of KeyCLD's seed s "
+        "(seed 0's where KeyCLD has fewer seeds), not all from seed 0's",
+    )
     add_recipe(parser, rounds=1)
     args = parser.parse_args()
     if args.jobs < 1:
@@ -356,18 +362,22 @@ def _plan(args, out: pathlib.Path) -> dict:
         "KeyCLD": ([], False, args.seeds),
         **{name: (*variant, args.ablation_seeds) for name, variant in VARIANTS.items()},
     }
+    # one initialisation where there is no autoencoder stage to choose: a shared one (so for the
+    # dynamics without constraints too, which would have nothing to choose by)
+    single = [*recipe[: recipe.index("--candidates") + 1], 1, *recipe[recipe.index("--candidates") + 2 :]]
     rows = {}
     for name in ["KeyCLD", *(name for name in args.models if name != "KeyCLD")]:
         options, shared, seeds = plan[name]
         if name == "KeyCLD" and "KeyCLD" not in args.models:
             seeds = min(seeds, 1)  # its first seed, from whose autoencoder the ablations but FC start
         slug = "keycld" if name == "KeyCLD" else name.lower().replace(" ", "-")
-        source = out / "keycld-0" if shared else None
-        share = ["--networks-from", source] if shared else []
-        rows[name] = [
-            (out / f"{slug}-{s}", out / "data", [*recipe, *options, *share, "--seed", s], source)
-            for s in range(seeds)
-        ]
+        rows[name] = []
+        for s in range(seeds):
+            paired = args.pair_autoencoders and s < len(rows["KeyCLD"])
+            source = out / f"keycld-{s if paired else 0}" if shared else None
+            share = ["--networks-from", source] if shared else []
+            options_s = [*(single if shared else recipe), *options, *share, "--seed", s]
+            rows[name].append((out / f"{slug}-{s}", out / "data", options_s, source))
     return rows
 
 

@@ -126,7 +126,7 @@ class Schedule:
     autoencoder_steps: int = 2000
     autoencoder_batch: int = 64
     candidates: int = 1
-    candidate_steps: int = 300
+    candidate_steps: int = 500
     rigid_steps: int = 0
     rigid_weight: float = 0.01
     dynamics_steps: int = 2000

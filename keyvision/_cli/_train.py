@@ -299,12 +299,15 @@ def _networks_source(directory: str, spec: dict, frames) -> dict:
             )
     if (source.get("data") or {}).get("cache_key") != frames.info.get("cache_key"):
         raise CommandError(f"--networks-from {directory}: it was trained on other frames than --data")
-    history = pathlib.Path(directory) / "history-autoencoder.json"
-    try:
-        records = json.loads(history.read_text())["records"]
-    except (OSError, UnicodeDecodeError, json.JSONDecodeError, KeyError, TypeError):
-        records = []
-    seconds = records[-1].get("seconds") if records else None
+    seconds = None  # stage (a)'s, with the candidates' trials before it
+    trials = sorted(pathlib.Path(directory).glob("history-candidate-*.json"))
+    for history in [*trials, pathlib.Path(directory) / "history-autoencoder.json"]:
+        try:
+            records = json.loads(history.read_text())["records"]
+        except (OSError, UnicodeDecodeError, json.JSONDecodeError, KeyError, TypeError):
+            records = []
+        if records and records[-1].get("seconds") is not None:
+            seconds = (seconds or 0.0) + float(records[-1]["seconds"])
     return {
         "model": model,
         "record": {"directory": str(pathlib.Path(directory).resolve()), "autoencoder_seconds": seconds},
