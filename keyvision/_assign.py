@@ -180,14 +180,19 @@ def constraint_score(model: KeyCLD, keypoints: cldyn.Sequences) -> float:
 
 
 def choose_candidate(
-    trials: dict[str, cldyn.FitResult], data: ImageSequences, out: pathlib.Path | None, resume: bool
+    trials: dict[str, cldyn.FitResult],
+    data: ImageSequences,
+    out: pathlib.Path | None,
+    resume: bool,
+    progress_meter: cldyn.AbstractProgressMeter = cldyn.NoProgressMeter(),
 ) -> dict:
     """Of the candidates' trials (their fits by stage name), the one that `keyvision.train` continues:
     the lowest `constraint_score` on the training frames (a non-finite score counts as the worst).
 
     The choice and every score are recorded in `out/candidates.json`; on resume the recorded choice
     is kept (a GPU need not encode the frames bitwise alike twice), unless the record is unreadable
-    and stage (a) has not checkpointed yet, when the candidates are scored again.
+    and stage (a) has not checkpointed yet, when the candidates are scored again. Scoring encodes
+    every training frame once per candidate; `progress_meter` counts the candidates scored.
 
     **Returns:** the record: `{"stages": [...], "scores": [...], "chosen": stage}`.
     """
@@ -208,10 +213,14 @@ def choose_candidate(
                 f"started from one of them: delete {path.name} and checkpoint-autoencoder.eqx to choose "
                 "afresh"
             )
-    scores = {
-        name: constraint_score(fitted.model, encode_sequences(fitted.model, data))
-        for name, fitted in trials.items()
-    }
+    scores = {}
+    meter = progress_meter.start(len(names), desc="scoring candidates", unit="candidate")
+    try:
+        for name, fitted in trials.items():
+            scores[name] = constraint_score(fitted.model, encode_sequences(fitted.model, data))
+            meter = progress_meter.update(meter, len(scores), {"score": scores[name]})
+    finally:
+        progress_meter.close(meter)
     chosen = min(names, key=lambda name: scores[name] if math.isfinite(scores[name]) else math.inf)
     record = {
         "schema": _CHOICE_SCHEMA,

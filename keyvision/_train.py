@@ -488,9 +488,8 @@ def train(
     if schedule.candidates > 1:
         for stage, candidate in zip(candidate_stages(schedule.candidates), models):
             networks_fit(candidate, stage, images_loss, schedule.candidate_steps, _stage_key(key, stage))
-        chosen = choose_candidate(
-            {stage: stages[stage] for stage in candidate_stages(schedule.candidates)}, data, out, resume
-        )
+        trials = {stage: stages[stage] for stage in candidate_stages(schedule.candidates)}
+        chosen = choose_candidate(trials, data, out, resume, progress_meter)
         model = stages[chosen["chosen"]].model
     if schedule.autoencoder_steps:
         steps = schedule.autoencoder_steps

@@ -194,8 +194,11 @@ def test_training_continues_the_candidate_whose_keypoints_keep_the_constraints(t
         candidates=2, candidate_steps=2, autoencoder_steps=2, autoencoder_batch=4, dynamics_steps=0,
         joint_steps=0, refit_steps=0, heatmap_weight=0.0, log_every=1,
     )
-    result = keyvision.train(candidates, data, key=jax.random.key(1), schedule=schedule, out=tmp_path)
+    meter = _Recorder()
+    result = keyvision.train(candidates, data, key=jax.random.key(1), schedule=schedule, out=tmp_path,
+                             progress_meter=meter)
     assert list(result.stages) == ["candidate-1", "candidate-2", "autoencoder"]
+    assert meter.lines[-2:] == [("scoring candidates", 1), ("scoring candidates", 2)]
     assert result.candidates["chosen"] == "candidate-2"
     squashed = np.hypot(bob[..., 0], 0.5 * bob[..., 1])
     good, bad = result.candidates["scores"][1], result.candidates["scores"][0]
@@ -223,6 +226,23 @@ def test_training_continues_the_candidate_whose_keypoints_keep_the_constraints(t
     refused = r"choosing among candidates \(Schedule.candidates = 2\) needs dynamics with constraints"
     with pytest.raises(ValueError, match=refused):
         keyvision.train(free, data, key=jax.random.key(1), schedule=schedule)
+
+
+class _Recorder(cldyn.AbstractProgressMeter):
+    """Keeps every update of the scoring of candidates: (description, done)."""
+
+    lines: list = eqx.field(default_factory=list)
+
+    def start(self, total, *, initial=0, desc="", unit="step"):
+        return desc
+
+    def update(self, state, done, info=None):
+        if state == "scoring candidates":
+            self.lines.append((state, done))
+        return state
+
+    def close(self, state):
+        del state
 
 
 def _no_encoding(*_):
