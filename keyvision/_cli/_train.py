@@ -4,7 +4,8 @@ The output directory holds `keyvision.json` (the model's sizes, the dynamics' cl
 the seed and the schedule), `model.eqx` (the trained parameters: `keyvision evaluate --model` reads
 both), and `keyvision.train`'s own files (`train.json`, and per stage `checkpoint-<stage>.eqx`,
 `history-<stage>.json`, `model-<stage>.eqx`, and for the dynamics stages `keypoints-<stage>.npz`, the
-keypoints they fit) from which `--resume` continues.
+keypoints they fit; with `--candidates`, `candidates.json`, the candidates' scores and the one chosen)
+from which `--resume` continues.
 """
 
 import argparse
