@@ -364,7 +364,7 @@ def _plan(args, out: pathlib.Path) -> dict:
     }
     # one initialisation where there is no autoencoder stage to choose: a shared one (so for the
     # dynamics without constraints too, which would have nothing to choose by)
-    single = [*recipe[: recipe.index("--candidates") + 1], 1, *recipe[recipe.index("--candidates") + 2 :]]
+    single = recipe_options(argparse.Namespace(**{**vars(args), "candidates": 1}))
     rows = {}
     for name in ["KeyCLD", *(name for name in args.models if name != "KeyCLD")]:
         options, shared, seeds = plan[name]

@@ -430,10 +430,10 @@ def train(
     model = models[0]
     if not isinstance(data, ImageSequences):
         raise TypeError(f"train: data must be keyvision.ImageSequences, got {type(data).__name__}")
-    needs = {"the rigid stage": "rigid_steps"} if schedule.rigid_steps else {}
-    needs.update({"choosing among candidates": "candidates"} if schedule.candidates > 1 else {})
-    for what, name in needs.items():
-        if getattr(model.dynamics, "constraint", None) is None:
+    needs = (("the rigid stage", "rigid_steps", schedule.rigid_steps > 0),
+             ("choosing among candidates", "candidates", schedule.candidates > 1))
+    for what, name, used in needs:
+        if used and getattr(model.dynamics, "constraint", None) is None:
             raise ValueError(
                 f"train: {what} (Schedule.{name} = {getattr(schedule, name)}) needs dynamics with "
                 f"constraints, got {type(model.dynamics).__name__} without any"
@@ -486,10 +486,11 @@ def train(
 
     chosen = None
     if schedule.candidates > 1:
-        for stage, candidate in zip(candidate_stages(schedule.candidates), models):
+        trials = candidate_stages(schedule.candidates)
+        for stage, candidate in zip(trials, models):
             networks_fit(candidate, stage, images_loss, schedule.candidate_steps, _stage_key(key, stage))
-        trials = {stage: stages[stage] for stage in candidate_stages(schedule.candidates)}
-        chosen = choose_candidate(trials, data, out, resume, progress_meter)
+        fits = {stage: stages[stage] for stage in trials}
+        chosen = choose_candidate(fits, data, out, resume, progress_meter)
         model = stages[chosen["chosen"]].model
     if schedule.autoencoder_steps:
         steps = schedule.autoencoder_steps
