@@ -60,6 +60,7 @@ RECIPE = {
     "constraint_drift": (str, "window"),
     "candidates": (int, 1),
     "candidate_steps": (int, 500),
+    "candidate_runs": (int, 50),
 }
 
 

@@ -185,6 +185,8 @@ def choose_candidate(
     out: pathlib.Path | None,
     resume: bool,
     progress_meter: cldyn.AbstractProgressMeter = cldyn.NoProgressMeter(),
+    *,
+    runs: int | None = None,
 ) -> dict:
     """Of the candidates' trials (their fits by stage name), the one that `keyvision.train` continues:
     the lowest `constraint_score` on the training frames (a non-finite score counts as the worst).
@@ -192,9 +194,11 @@ def choose_candidate(
     The choice and every score are recorded in `out/candidates.json`; on resume the recorded choice
     is kept (a GPU need not encode the frames bitwise alike twice), unless the record is unreadable
     and stage (a) has not checkpointed yet, when the candidates are scored again. Scoring encodes
-    every training frame once per candidate; `progress_meter` counts the candidates scored.
+    every frame of the runs scored once per candidate: at most `runs` of them (`Schedule.candidate_runs`),
+    every `k`-th run with `k = ceil(data.num_runs / runs)`; all by default. `progress_meter` counts
+    the candidates scored.
 
-    **Returns:** the record: `{"stages": [...], "scores": [...], "chosen": stage}`.
+    **Returns:** the record: `{"stages": [...], "scores": [...], "chosen": stage, "runs": scored}`.
     """
     names = list(trials)
     path = None if out is None else out / CHOICE_NAME
@@ -213,11 +217,13 @@ def choose_candidate(
                 f"started from one of them: delete {path.name} and checkpoint-autoencoder.eqx to choose "
                 "afresh"
             )
+    every = 1 if runs is None else -(-data.num_runs // runs)
+    scored = jax.tree.map(lambda a: a[::every], data) if every > 1 else data
     scores = {}
     meter = progress_meter.start(len(names), desc="scoring candidates", unit="candidate")
     try:
         for name, fitted in trials.items():
-            scores[name] = constraint_score(fitted.model, encode_sequences(fitted.model, data))
+            scores[name] = constraint_score(fitted.model, encode_sequences(fitted.model, scored))
             meter = progress_meter.update(meter, len(scores), {"score": scores[name]})
     finally:
         progress_meter.close(meter)
@@ -227,6 +233,7 @@ def choose_candidate(
         "stages": names,
         "scores": [scores[name] if math.isfinite(scores[name]) else None for name in names],
         "chosen": chosen,
+        "runs": scored.num_runs,
     }
     if path is not None:
         atomic_write(path, json.dumps(record, indent=1))

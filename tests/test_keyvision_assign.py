@@ -2,6 +2,7 @@
 the keypoints renumbered, and the assignment finds the order in which keypoints keep the cart-pole's
 constraints (the cart at a fixed height, the pole's end at a fixed distance from it)."""
 
+import dataclasses
 import itertools
 import json
 
@@ -218,6 +219,25 @@ def test_training_continues_the_candidate_whose_keypoints_keep_the_constraints(t
     with pytest.raises(cldyn.CheckpointError, match="candidates.json: not a choice among the candidates"):
         keyvision.train(candidates, data, key=jax.random.key(1), schedule=schedule, out=tmp_path, resume=True)
     assert (tmp_path / "checkpoint-autoencoder.eqx").read_bytes() == checkpoint
+    # scored on at most 2 of 5 runs: every 3rd (runs 0 and 3) is encoded, and the score is the closed
+    # form on those runs
+    monkeypatch.undo()
+    five, bob = _disc_frames(runs=5)
+    encoded = []
+
+    def spy(model, data):
+        encoded.append(np.asarray(data.frames))
+        return keyvision._evaluate.encode_sequences(model, data)
+
+    monkeypatch.setattr(keyvision._assign, "encode_sequences", spy)
+    few = dataclasses.replace(schedule, candidate_runs=2)
+    subset = keyvision.train(candidates, five, key=jax.random.key(1), schedule=few).candidates
+    assert len(encoded) == 2 and all(np.array_equal(e, np.asarray(five.frames)[[0, 3]]) for e in encoded)
+    assert subset["runs"] == 2 and result.candidates["runs"] == 4
+    squashed = np.hypot(bob[::3, :, 0], 0.5 * bob[::3, :, 1])
+    assert subset["scores"][0] == pytest.approx(squashed.var() / squashed.mean() ** 2, rel=0.05)
+    with pytest.raises(ValueError, match="candidate_runs"):
+        keyvision.Schedule(candidate_runs=0)
     # the number of models must match the schedule, and a model without constraints has nothing to go by
     with pytest.raises(ValueError, match="1 models given for Schedule.candidates = 2"):
         keyvision.train(candidates[0], data, key=jax.random.key(1), schedule=schedule)

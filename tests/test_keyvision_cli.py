@@ -169,7 +169,7 @@ def test_render_train_evaluate(tmp_path, capsys):
     # the joint stage is covered by the library's tests; its compilation would double this test's time
     train = ["train", "--data", data, "--out", model, "--width", 4, "--dynamics-width", 8]
     train += ["--autoencoder-steps", 2, "--dynamics-steps", 2, "--joint-steps", 0, "--refit-steps", 0]
-    train += ["--candidates", 2, "--candidate-steps", 2, "--no-progress"]  # stage (a)'s compiled step
+    train += ["--candidates", 2, "--candidate-steps", 2, "--candidate-runs", 2, "--no-progress"]
     status, out, err = _run(capsys, train)
     assert status == 0, err
     summary = json.loads(out)
@@ -177,6 +177,7 @@ def test_render_train_evaluate(tmp_path, capsys):
     # two initialisations tried, stage (a) continued the one of the lower constraint score
     scores = [summary["candidates"][f"candidate-{k}"] for k in (1, 2)]
     assert summary["candidates"]["chosen"] == f"candidate-{1 + int(np.argmin(scores))}"
+    assert summary["candidates"]["runs"] == 2  # of the 3 training runs, every 2nd
     assert summary["candidate-1"]["steps"] == summary["candidate-2"]["steps"] == 2
     spec = json.loads((model / "keyvision.json").read_text())
     assert spec["keypoints"] == 1 and spec["dynamics"]["constraint"] == "pendulum"

@@ -152,6 +152,13 @@ def register(subparsers) -> None:
         help="steps of each candidate's trial (with --candidates above 1)",
     )
     parser.add_argument(
+        "--candidate-runs",
+        type=count,
+        default=default.candidate_runs,
+        help="score the candidates on at most this many training runs (every k-th run); more runs cost more "
+        "encoding time",
+    )
+    parser.add_argument(
         "--rigid-steps",
         type=positive(integer=True, allow_zero=True),
         default=default.rigid_steps,
@@ -392,6 +399,7 @@ def run(args: argparse.Namespace) -> int:
         autoencoder_batch=args.autoencoder_batch,
         candidates=args.candidates,
         candidate_steps=args.candidate_steps,
+        candidate_runs=args.candidate_runs,
         rigid_steps=args.rigid_steps,
         rigid_weight=args.rigid_weight,
         joint_batch=args.joint_batch,
@@ -484,6 +492,10 @@ def run(args: argparse.Namespace) -> int:
         }
     if result.candidates is not None:
         record = result.candidates
-        summary["candidates"] = {**dict(zip(record["stages"], record["scores"])), "chosen": record["chosen"]}
+        summary["candidates"] = {
+            **dict(zip(record["stages"], record["scores"])),
+            "chosen": record["chosen"],
+            "runs": record.get("runs"),
+        }
     print(json.dumps(summary))
     return 0
