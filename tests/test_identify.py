@@ -14,6 +14,7 @@ import itertools
 import json
 import re
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -235,6 +236,27 @@ def test_weak_residual_of_the_true_model_vanishes():
     weak = tests.weak(*evaluate(Residual(system, joints), *prepared.arrays()))
     residual, inertial = weak[..., 0], weak[..., 1]
     assert np.sqrt(np.mean(residual**2)) < WEAK_RESIDUAL_RTOL * np.sqrt(np.mean(inertial**2))
+
+
+def test_identifys_rollouts_are_cldyns_rollouts():
+    """identify's own rollout loop (a scan with RK4's stages looped, for compile time) integrates the
+    same scheme as `cldyn.rollout` (diffrax, RK4 with the projection, controls held): the same
+    positions to rounding, from states off the constraints' tangent space, with controls and
+    damping."""
+    from cldyn._identify.errors import _step_rollout
+
+    system, joints, _ = reference_systems()["acrobot"]
+    m = joints.num_joints
+    damping = cldyn.JointDamping(_hinges(m), jnp.linspace(0.2, 0.5, m))
+    damped = eqx.tree_at(lambda s: s.dissipation, system, damping, is_leaf=lambda v: v is None)
+    rng = np.random.default_rng(5)
+    q0, qd0 = rng.uniform(-1.5, 1.5, (3, m)), rng.uniform(-2.0, 2.0, (3, m))
+    x0, xd0 = jax.vmap(joints.to_keypoints)(jnp.asarray(q0), jnp.asarray(qd0))
+    xd0 = xd0 + 0.05 * jnp.asarray(rng.standard_normal(xd0.shape))
+    us = jnp.asarray(rng.uniform(-1.0, 1.0, (3, 151, system.num_inputs)))
+    expected = jax.vmap(lambda a, b, c: cldyn.rollout(damped, a, b, c, 0.01).x)(x0, xd0, us)
+    found = jax.jit(jax.vmap(lambda a, b, c: _step_rollout(damped, a, b, c, 0.01)))(x0, xd0, us)
+    assert float(jnp.max(jnp.abs(found - expected))) < 1e-12 * float(jnp.max(jnp.abs(expected)))
 
 
 @pytest.mark.slow
