@@ -42,8 +42,9 @@ def rollout(
 
     How recorded runs are replayed (MuJoCo holds `ctrl` between samples; KeyCLD's data hold one
     action per run): `cldyn.simulate` with `cldyn.ZeroOrderHold(controls, dt)`, saving the state at
-    the sample times `dt * arange(T)`. The losses (`Rollout`, `MultipleShooting`), `evaluate` and
-    `identify` all roll out through this function. One example in, one out: `jax.vmap` it over runs.
+    the sample times `dt * arange(T)`. The losses (`Rollout`, `MultipleShooting`) and `evaluate`
+    roll out through this function; `identify`'s held-out rollouts integrate the same scheme in a
+    loop of its own that compiles faster. One example in, one out: `jax.vmap` it over runs.
 
     **Arguments:**
 
