@@ -5,6 +5,9 @@ drawn cheaply.
 reshaped to `shape` gives the same numbers as a draw of `shape`; under JAX's default
 `jax_threefry_partitionable` the flat draw compiles several times faster, and a network of a dozen
 layers is built in a fraction of the time (`tests/test_nn.py` checks the numbers against Equinox's).
+Under that setting element `i` of a threefry draw depends on the key and `i` alone, so the first `n`
+elements of a longer draw are the draw of `n`: sizes are rounded up to a power of two, and layers of
+different sizes share one compiled draw (each distinct size compiles anew, 0.1-0.6 s on CPU).
 """
 
 import math
@@ -18,7 +21,11 @@ _INIT_STD = 0.01
 
 
 def _flat(sample, key: PRNGKeyArray, shape: tuple[int, ...], dtype, **kwargs) -> jax.Array:
-    return sample(key, (math.prod(shape),), dtype, **kwargs).reshape(shape)
+    size = math.prod(shape)
+    drawn = size
+    if jax.config.jax_threefry_partitionable and str(jax.random.key_impl(key)) == "threefry2x32":
+        drawn = 1 << max(size - 1, 0).bit_length()  # a prefix of the same numbers (module docstring)
+    return jax.lax.slice_in_dim(sample(key, (drawn,), dtype, **kwargs), 0, size).reshape(shape)
 
 
 def default_init(layer, key: PRNGKeyArray):
