@@ -242,7 +242,8 @@ def test_identifys_rollouts_are_cldyns_rollouts():
     """identify's own rollout loop (a scan with RK4's stages looped, for compile time) integrates the
     same scheme as `cldyn.rollout` (diffrax, RK4 with the projection, controls held): the same
     positions to rounding, from states off the constraints' tangent space, with controls and
-    damping."""
+    damping; and on a run too fast for the step, whose projection fails, both keep that step and leave
+    every later position infinite."""
     from cldyn._identify.errors import _step_rollout
 
     system, joints, _ = reference_systems()["acrobot"]
@@ -250,13 +251,19 @@ def test_identifys_rollouts_are_cldyns_rollouts():
     damping = cldyn.JointDamping(_hinges(m), jnp.linspace(0.2, 0.5, m))
     damped = eqx.tree_at(lambda s: s.dissipation, system, damping, is_leaf=lambda v: v is None)
     rng = np.random.default_rng(5)
-    q0, qd0 = rng.uniform(-1.5, 1.5, (3, m)), rng.uniform(-2.0, 2.0, (3, m))
+    q0, qd0 = rng.uniform(-1.5, 1.5, (4, m)), rng.uniform(-2.0, 2.0, (4, m))
+    qd0[3] = (60.0, -80.0)  # rad/s: at 10 ms steps the projection fails after a few steps
     x0, xd0 = jax.vmap(joints.to_keypoints)(jnp.asarray(q0), jnp.asarray(qd0))
     xd0 = xd0 + 0.05 * jnp.asarray(rng.standard_normal(xd0.shape))
-    us = jnp.asarray(rng.uniform(-1.0, 1.0, (3, 151, system.num_inputs)))
-    expected = jax.vmap(lambda a, b, c: cldyn.rollout(damped, a, b, c, 0.01).x)(x0, xd0, us)
+    us = jnp.asarray(rng.uniform(-1.0, 1.0, (4, 151, system.num_inputs)))
+    expected = jax.vmap(lambda a, b, c: cldyn.rollout(damped, a, b, c, 0.01, throw=False).x)(x0, xd0, us)
     found = jax.jit(jax.vmap(lambda a, b, c: _step_rollout(damped, a, b, c, 0.01)))(x0, xd0, us)
-    assert float(jnp.max(jnp.abs(found - expected))) < 1e-12 * float(jnp.max(jnp.abs(expected)))
+    expected, found = np.asarray(expected), np.asarray(found)
+    taken = np.isfinite(expected).all(axis=-1)
+    steps = int(taken[3].sum())
+    assert taken[:3].all() and 1 < steps < taken.shape[1] and not taken[3, steps:].any()
+    np.testing.assert_array_equal(np.isinf(found), np.isinf(expected))
+    assert np.max(np.abs(found[taken] - expected[taken])) < 1e-12 * np.max(np.abs(expected[taken]))
 
 
 @pytest.mark.slow

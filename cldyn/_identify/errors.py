@@ -27,8 +27,8 @@ _RK4_STAGES = np.array([[0.0, 1 / 6], [0.5, 1 / 3], [0.5, 1 / 3], [1.0, 1 / 6]])
 def _step_rollout(model: ConstrainedLagrangian, x0, xd0, controls, dt: float):
     """The positions of `cldyn.rollout(model, x0, xd0, controls, dt, throw=False)`, `(T, k)`: the
     initial state projected onto the constraint manifold, then one RK4 step per sample with that
-    sample's control held over it, each step's end projected (`Projection`); from a projection that
-    fails on, the positions are infinite (where `rollout` stops, and leaves them so).
+    sample's control held over it, each step's end projected (`Projection`); after a step whose
+    projection fails, the positions are infinite (`rollout` stops there and leaves them so).
 
     The same scheme and the same pieces (`DynamicsTerm`, `Projection.correct_step`), as a scan over
     the samples whose step loops over RK4's four stages: one copy of the model's acceleration to
@@ -56,8 +56,9 @@ def _step_rollout(model: ConstrainedLagrangian, x0, xd0, controls, dt: float):
         (total, _), _ = jax.lax.scan(stage, (jnp.zeros_like(y0), jnp.zeros_like(y0)), stages)
         y1 = y0 + dt * total
         x, xd, result = projection.correct_step(term, y1[:k], y1[k:])
-        failed = failed | (result != dfx.RESULTS.successful)
-        return (x, xd, failed), jnp.where(failed, jnp.inf, x)
+        # as diffrax stops: the step whose projection fails is kept, those after it are not taken
+        saved = jnp.where(failed, jnp.inf, x)
+        return (x, xd, failed | (result != dfx.RESULTS.successful)), saved
 
     _, xs = jax.lax.scan(step, (x0, xd0, jnp.asarray(False)), controls[:-1])
     return jnp.concatenate([x0[None], xs])
