@@ -33,8 +33,9 @@ def _step_rollout(model: ConstrainedLagrangian, x0, xd0, controls, dt: float):
     The same scheme and the same pieces (`DynamicsTerm`, `Projection.correct_step`), as a scan over
     the samples whose step loops over RK4's four stages: one copy of the model's acceleration to
     compile instead of four, and none of the general solver's machinery. identify compiles a rollout
-    for every trial model and runs each only briefly, so compiling is most of its cost: this takes
-    about half the time to compile (2.4 -> 1.1 s for a pendulum, 2.7 -> 1.8 s for an acrobot, CPU).
+    for every trial model and runs each only briefly, so compiling is most of its cost: a new model's
+    fit of the initial states takes a third to a half of the time it took with `cldyn.rollout`
+    (`benchmarks/identify_compile.py`, CPU: pendulum 4.0 -> 1.25 s, acrobot 4.6 -> 2.1 s).
     """
     x0, xd0, _ = project_state(model, x0, xd0, throw=False)
     projection = Projection()
@@ -64,6 +65,15 @@ def _step_rollout(model: ConstrainedLagrangian, x0, xd0, controls, dt: float):
     return jnp.concatenate([x0[None], xs])
 
 
+def _rollout_states(model: ConstrainedLagrangian, states, controls, dt: float):
+    """`_step_rollout` from each of the states `(B, 2k)` (positions, then velocities) with its
+    controls `(B, T, l)`: the positions `(B, T, k)`. As one batch: the scan batches at about the
+    compile time of one rollout after another (`lax.map`) and runs 5-10 times faster (acrobot, 12
+    runs: 0.02 s a call against 0.2 s)."""
+    k = states.shape[1] // 2
+    return jax.vmap(lambda y, u: _step_rollout(model, y[:k], y[k:], u, dt))(states, controls)
+
+
 @eqx.filter_jit
 def _rollout_batch(
     model,
@@ -78,6 +88,7 @@ def _rollout_batch(
     max_steps: int = 20,
     rtol: float = 1e-6,
     atol: float = 1e-9,
+    roll=_rollout_states,
 ):
     """Rollouts from the start of each run, and whether each initial-state fit converged.
 
@@ -91,7 +102,9 @@ def _rollout_batch(
     and its `2k` perturbed initial states as one batch of plain (undifferentiated) rollouts
     (`_step_rollout`, `cldyn.rollout`'s scheme), and the unperturbed rollout of the last iteration
     is the result. One rollout loop to trace and compile, a fraction of what differentiating through
-    it costs; the minimiser is the same.
+    it costs; the minimiser is the same. (`roll(model, states (B, 2k), controls (B, T, l), dt)`,
+    the positions `(B, T, k)`, replaces that batch for `benchmarks/identify_compile.py`'s
+    reference.)
     Velocity changes across the constraints are projected away by the rollout, so the
     least-squares problem is rank-deficient: the steps are minimum-norm (SVD). A run whose rollouts
     turn non-finite (a model that cannot follow it, say) stops where it is, unconverged; its rollout
@@ -105,10 +118,6 @@ def _rollout_batch(
     target = measured[:, : window + 1].reshape(runs, -1)
     # per residual row, sample by sample as `target` lays them out
     weight = jnp.repeat(valid[:, : window + 1].astype(measured.dtype), measured.shape[-1], axis=1)
-    # the rollouts as one batch: the scan of `_step_rollout` batches at about the compile time of one
-    # rollout after another (`lax.map`) and runs 5-10 times faster (acrobot, 12 runs: 0.02 s a call
-    # against 0.2 s)
-    roll = jax.vmap(lambda y, controls: _step_rollout(model, y[:k], y[k:], controls, dt))
     probe_us = jnp.repeat(us, n + 1, axis=0)
 
     def cond(carry):
@@ -119,7 +128,8 @@ def _rollout_batch(
         y, count, done, converged, _ = carry
         h = relative_step * (1 + jnp.abs(y))  # (runs, 2k)
         probes = y[:, None, :] + jnp.concatenate([jnp.zeros((runs, 1, n), y.dtype), jax.vmap(jnp.diag)(h)], 1)
-        xs = roll(probes.reshape(-1, n), probe_us).reshape((runs, n + 1) + measured.shape[1:])
+        xs = roll(model, probes.reshape(-1, n), probe_us, dt)
+        xs = xs.reshape((runs, n + 1) + measured.shape[1:])
         window_xs = xs[:, :, : window + 1].reshape(runs, n + 1, -1)
         jac = jnp.swapaxes((window_xs[:, 1:] - window_xs[:, :1]) / h[:, :, None], 1, 2) * weight[:, :, None]
         delta = jax.vmap(lambda a, b: jnp.linalg.lstsq(a, b, rcond=1e-6)[0])(
