@@ -53,3 +53,17 @@ def test_keycld_mlp_draws_normal_weights_and_zero_biases():
         np.testing.assert_array_equal(layer.weight, 0.01 * jax.random.normal(k, shape, layer.weight.dtype))
         np.testing.assert_array_equal(layer.bias, np.zeros(shape[0]))
     assert built(jnp.ones(4)).shape == ()
+
+
+@pytest.mark.parametrize("partitionable", [True, False])
+def test_draws_are_equinoxs_under_either_threefry_setting(partitionable):
+    # the draws are rounded up to a power of two and cut only where that gives the same numbers (a
+    # prefix of a longer partitionable threefry draw); without partitioning they are drawn to size
+    previous = jax.config.jax_threefry_partitionable
+    jax.config.update("jax_threefry_partitionable", partitionable)
+    try:
+        key = jax.random.key(15)
+        built = mlp(3, 5, 7, 2, activation=jax.nn.relu, key=key)
+        _same(built, eqx.nn.MLP(3, 5, 7, 2, activation=jax.nn.relu, key=key))
+    finally:
+        jax.config.update("jax_threefry_partitionable", previous)
