@@ -7,7 +7,7 @@ reshaped to `shape` gives the same numbers as a draw of `shape`; under JAX's def
 layers is built in a fraction of the time (`tests/test_nn.py` checks the numbers against Equinox's).
 Under that setting element `i` of a threefry draw depends on the key and `i` alone, so the first `n`
 elements of a longer draw are the draw of `n`: sizes are rounded up to a power of two, and layers of
-different sizes share one compiled draw (each distinct size compiles anew, 0.1-0.6 s on CPU).
+different sizes share one compiled draw (every distinct size compiles anew, about 0.1 s on CPU).
 """
 
 import math
