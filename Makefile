@@ -48,8 +48,9 @@ lint: $(STAMP)
 # --dist loadfile: a module's tests run on one worker, so what they compile in common (a scene's
 # nominal model, a fixture's training) is compiled once, not on both workers (the tests' durations
 # summed to 1808 s against 1909 s with tests spread one by one, 2026-11-26; wall times of one tree
-# differ here by up to 20% from run to run: 815, 840 and 982 s for one tree on 2026-11-28). A worker that crashes ends the run: the replacement xdist
-# starts is never given the lost tests, and the run would hang until CI's limit.
+# differ here by up to 20% from run to run: 815, 840 and 982 s for one tree on 2026-11-28). A worker
+# that crashes ends the run: the replacement xdist starts is never given the lost tests, and the run
+# would hang until CI's limit.
 test: lint
 	$(BIN)/python -m pytest -q -n 2 --dist loadfile --max-worker-restart 0
 
