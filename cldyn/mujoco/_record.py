@@ -220,19 +220,25 @@ def _motors(model) -> np.ndarray:
     )
 
 
-def _applied_ctrl(model, data, ctrl: np.ndarray) -> np.ndarray:
+class _AppliedCtrl:
     """The control as applied: clamped to `ctrlrange` where `ctrllimited`, and for motors the force
     MuJoCo applied (after its clamping to `forcerange` where `forcelimited`) over the gain, so that
-    `gear * gain * u` is the joint force."""
-    applied = ctrl.copy()
-    if not model.opt.disableflags & mujoco.mjtDisableBit.mjDSBL_CLAMPCTRL:
-        limited = model.actuator_ctrllimited.astype(bool)
-        applied[limited] = np.clip(ctrl[limited], *model.actuator_ctrlrange[limited].T)
-    # where a motor's force was clamped (exact products elsewhere keep the control bit for bit)
-    gain = model.actuator_gainprm[:, 0]
-    forced = _motors(model) & (data.actuator_force != gain * applied)
-    applied[forced] = data.actuator_force[forced] / gain[forced]
-    return applied
+    `gear * gain * u` is the joint force. What the model fixes is read once, not at every sample."""
+
+    def __init__(self, model):
+        clamped = not model.opt.disableflags & mujoco.mjtDisableBit.mjDSBL_CLAMPCTRL
+        self.limited = model.actuator_ctrllimited.astype(bool) & clamped
+        self.low, self.high = model.actuator_ctrlrange[self.limited].T
+        self.gain = model.actuator_gainprm[:, 0].copy()
+        self.motors = _motors(model)
+
+    def __call__(self, data, ctrl: np.ndarray) -> np.ndarray:
+        applied = ctrl.copy()
+        applied[self.limited] = np.clip(ctrl[self.limited], self.low, self.high)
+        # where a motor's force was clamped (exact products elsewhere keep the control bit for bit)
+        forced = self.motors & (data.actuator_force != self.gain * applied)
+        applied[forced] = data.actuator_force[forced] / self.gain[forced]
+        return applied
 
 
 def simulate_mujoco(
@@ -253,7 +259,7 @@ def simulate_mujoco(
     force to `forcerange`), `u_commanded` those asked for.
     """
     runs = qpos0.shape[0]
-    kinematics = _Kinematics(model, keypoints, plane)
+    kinematics, applied = _Kinematics(model, keypoints, plane), _AppliedCtrl(model)
     data = mujoco.MjData(model)
     k = kinematics.projection.shape[0] * len(keypoints)
     out = {
@@ -271,15 +277,15 @@ def simulate_mujoco(
     state = progress_meter.start(runs, desc="MuJoCo runs", unit="run")
     try:
         for r in range(runs):
-            _run(model, data, kinematics, out, r, qpos0[r], qvel0[r], controls=controls, samples=samples,
-                 substeps=substeps)
+            _run(model, data, kinematics, applied, out, r, qpos0[r], qvel0[r], controls=controls,
+                 samples=samples, substeps=substeps)
             state = progress_meter.update(state, r + 1)
     finally:
         progress_meter.close(state)
     return out
 
 
-def _run(model, data, kinematics, out, r, qpos0, qvel0, *, controls, samples, substeps) -> None:
+def _run(model, data, kinematics, applied, out, r, qpos0, qvel0, *, controls, samples, substeps) -> None:
     """Run `r`: from `(qpos0, qvel0)`, each sample written into `out[...][r]`."""
     mujoco.mj_resetData(model, data)
     data.qpos[:] = qpos0
@@ -291,7 +297,7 @@ def _run(model, data, kinematics, out, r, qpos0, qvel0, *, controls, samples, su
         out["qpos"][r, s] = data.qpos
         out["qvel"][r, s] = data.qvel
         out["qacc"][r, s] = data.qacc
-        out["u"][r, s] = _applied_ctrl(model, data, ctrl)
+        out["u"][r, s] = applied(data, ctrl)
         out["u_commanded"][r, s] = ctrl
         for name in _FORCES:
             out[name][r, s] = getattr(data, name)
