@@ -11,8 +11,9 @@ here is the same fit with identify's rollouts as they were before (2026-11-28): 
 (diffrax), one run after another (`lax.map`). Both give the same positions to rounding
 (`tests/test_identify.py::test_identifys_rollouts_are_cldyns_rollouts`).
 
-Each scene and implementation runs in a fresh process, on 12 runs of 1 s at 100 Hz from random
-states with 1 mm noise on the measurement: the first call, with a model that has keypoint drag
+The runs (12 of 1 s at 100 Hz from random states, by `cldyn.rollout`, with 1 mm noise on the
+measurement) are made in this process; each scene and implementation is timed in a fresh one, which
+has not rolled the model out before: the first call, with a model that has keypoint drag
 (zero) added (the process's first rollout: tracing, compiling, one fit); then the call with the
 scene's model, a new structure in a process that has rolled out before, as each trial model of
 identify is (the headline figure); then the median of three more calls with it (the fit alone).
@@ -28,6 +29,7 @@ import os
 import pathlib
 import subprocess
 import sys
+import tempfile
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "benchmarks"))
@@ -42,16 +44,11 @@ import equinox as eqx, jax, jax.numpy as jnp, numpy as np
 jax.config.update("jax_enable_x64", True)
 import cldyn
 from cldyn._identify import errors
-scene, which = sys.argv[1], sys.argv[2]
-system, joints = getattr(cldyn.systems, scene)()
-rng = np.random.default_rng(0)
-m = joints.num_joints
-x0, xd0 = jax.vmap(joints.to_keypoints)(
-    jnp.asarray(rng.uniform(-1, 1, ({runs}, m))), jnp.asarray(rng.uniform(-1, 1, ({runs}, m)))
-)
-us = jnp.asarray(rng.uniform(-1, 1, ({runs}, {samples}, system.num_inputs)))
-truth = jax.jit(jax.vmap(lambda a, b, c: errors._step_rollout(system, a, b, c, {dt})))(x0, xd0, us)
-measured = truth + 1e-3 * jnp.asarray(rng.standard_normal(truth.shape))
+scene, which, path = sys.argv[1], sys.argv[2], sys.argv[3]
+system, _ = getattr(cldyn.systems, scene)()
+# the runs come from the parent process: no rollout of this model here before the timed calls
+saved = np.load(path)
+x0, xd0, us, truth, measured = (jnp.asarray(saved[k]) for k in ("x0", "xd0", "us", "truth", "measured"))
 def previous(model, states, controls, dt):  # identify's rollouts before 2026-11-28
     k = states.shape[1] // 2
     return jax.lax.map(
@@ -76,19 +73,47 @@ print(json.dumps({{"first_call_s": first, "new_model_s": new, "call_s": again,
 """
 
 
-def measure(scene: str, which: str) -> dict:
-    script = _ONE.format(runs=RUNS, samples=SAMPLES, dt=DT, window=WINDOW)
+def runs(scene: str, path: pathlib.Path) -> None:
+    """The scene's runs from random states (`cldyn.rollout`), with 1 mm noise, saved to `path`."""
+    import jax
+    import jax.numpy as jnp
+    import numpy as np
+
+    import cldyn
+
+    system, joints = getattr(cldyn.systems, scene)()
+    rng = np.random.default_rng(0)
+    m = joints.num_joints
+    x0, xd0 = jax.vmap(joints.to_keypoints)(
+        jnp.asarray(rng.uniform(-1, 1, (RUNS, m))), jnp.asarray(rng.uniform(-1, 1, (RUNS, m)))
+    )
+    us = rng.uniform(-1, 1, (RUNS, SAMPLES, system.num_inputs))
+    roll = jax.vmap(lambda a, b, c: cldyn.rollout(system, a, b, c, DT).x)
+    truth = np.asarray(roll(x0, xd0, jnp.asarray(us)))
+    measured = truth + 1e-3 * rng.standard_normal(truth.shape)
+    np.savez(path, x0=np.asarray(x0), xd0=np.asarray(xd0), us=us, truth=truth, measured=measured)
+
+
+def measure(scene: str, which: str, path: pathlib.Path) -> dict:
+    script = _ONE.format(runs=RUNS, dt=DT, window=WINDOW)
     env = dict(os.environ, JAX_PLATFORMS=os.environ.get("JAX_PLATFORMS", "cpu"))
     done = subprocess.run(
-        [sys.executable, "-c", script, scene, which], capture_output=True, text=True, env=env, check=True
+        [sys.executable, "-c", script, scene, which, str(path)], capture_output=True, text=True, env=env,
+        check=True,
     )
     return json.loads(done.stdout.strip().splitlines()[-1])
 
 
 def main() -> None:
+    import jax
+
+    jax.config.update("jax_enable_x64", True)
     rows = []
     for scene in SCENES:
-        own, reference = measure(scene, "identify"), measure(scene, "reference")
+        with tempfile.TemporaryDirectory() as folder:
+            path = pathlib.Path(folder) / "runs.npz"
+            runs(scene, path)
+            own, reference = measure(scene, "identify", path), measure(scene, "reference", path)
         rows.append(
             {
                 "scene": scene,

@@ -35,7 +35,7 @@ def _step_rollout(model: ConstrainedLagrangian, x0, xd0, controls, dt: float):
     compile instead of four, and none of the general solver's machinery. identify compiles a rollout
     for every trial model and runs each only briefly, so compiling is most of its cost: a new model's
     fit of the initial states takes a third to a half of the time it took with `cldyn.rollout`
-    (`benchmarks/identify_compile.py`, CPU: pendulum 4.0 -> 1.25 s, acrobot 4.6 -> 2.1 s).
+    (`benchmarks/identify_compile.py`, CPU: pendulum 2.5 -> 0.9 s, acrobot 3.2 -> 1.3 s).
     """
     x0, xd0, _ = project_state(model, x0, xd0, throw=False)
     projection = Projection()
