@@ -31,6 +31,12 @@ import subprocess
 import sys
 import tempfile
 
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+import cldyn
+
 ROOT = pathlib.Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "benchmarks"))
 from _common import machine, write  # noqa: E402
@@ -75,12 +81,6 @@ print(json.dumps({{"first_call_s": first, "new_model_s": new, "call_s": again,
 
 def runs(scene: str, path: pathlib.Path) -> None:
     """The scene's runs from random states (`cldyn.rollout`), with 1 mm noise, saved to `path`."""
-    import jax
-    import jax.numpy as jnp
-    import numpy as np
-
-    import cldyn
-
     system, joints = getattr(cldyn.systems, scene)()
     rng = np.random.default_rng(0)
     m = joints.num_joints
@@ -105,8 +105,6 @@ def measure(scene: str, which: str, path: pathlib.Path) -> dict:
 
 
 def main() -> None:
-    import jax
-
     jax.config.update("jax_enable_x64", True)
     rows = []
     for scene in SCENES:
