@@ -18,7 +18,6 @@ from cldyn._misc import atomic_write
 
 from ._data import ImageSequences
 from ._evaluate import encode_sequences
-from ._loss import constraint_drift
 from ._model import KeyCLD
 
 ORDER_NAME = "keypoint-order.json"  # the order of `assign_keypoints` after stage (a)
@@ -130,6 +129,20 @@ def rigid_order(model: KeyCLD, data: ImageSequences, out: pathlib.Path | None, r
     return model, order
 
 
+def _motion_spread(constraint, x: Array) -> Array:
+    """`constraint_score`'s value on frames `x` `(frames, 2K)`, keypoints in the constraints' order."""
+    frames, size = x.shape
+    values = jax.vmap(constraint)(x)
+    jacobian = jax.vmap(constraint.jacobian)(x).reshape(frames, -1, size // 2, 2)
+    sensitivity = jnp.mean(jnp.sum(jacobian**2, axis=-1), axis=0)  # (constraints, keypoints)
+    motion = jnp.sum(jnp.var(x.reshape(frames, size // 2, 2), axis=0), axis=-1)  # (keypoints,)
+    chance = sensitivity @ motion / 2
+    tiny = jnp.finfo(x.dtype).tiny
+    # keypoints that do not move at all tell nothing: as bad as keypoints unrelated to the bodies
+    ratio = jnp.where(chance > tiny, jnp.var(values, axis=0) / jnp.maximum(chance, tiny), 1.0)
+    return jnp.mean(ratio)
+
+
 def constraint_score(model: KeyCLD, keypoints: cldyn.Sequences) -> float:
     """How far the keypoints of an autoencoder are from keeping the constraints of its dynamics.
 
@@ -139,14 +152,20 @@ def constraint_score(model: KeyCLD, keypoints: cldyn.Sequences) -> float:
     apart where the cart and the pole's end are 12.8 pixels apart, and the dynamics learnt on them
     predicted for a third as long as those of the best (`docs/ablation.md`). The constraints tell
     such autoencoders apart without any ground truth. With the keypoints numbered as
-    `keyvision.assign_keypoints` numbers them and $\\Phi_c$ the constraints of `model.dynamics`,
+    `keyvision.assign_keypoints` numbers them, $\\Phi_c$ the constraints of `model.dynamics` and
+    $x_k$ keypoint $k$ over every frame of every run,
 
-    $$s = \\operatorname{mean}_c \\operatorname{var}_{r, t}\\, \\Phi_c(x_{r,t}),$$
+    $$s = \\operatorname{mean}_c \\frac{\\operatorname{Var} \\Phi_c(x)}
+    {\\tfrac12 \\sum_k \\operatorname{mean} \\lVert \\partial \\Phi_c / \\partial x_k \\rVert^2
+    \\operatorname{tr} \\operatorname{Cov} x_k}:$$
 
-    the variance over every frame of every run, a distance's divided by its mean square
-    (`keyvision.ConstraintDrift(pooled=True, relative=True)` over all the frames at once): 0 for
-    keypoints on rigid points of the bodies, whatever the lengths, and not lowered by drawing
-    keypoints together.
+    each constraint's variance over the variance it would have if the keypoints moved as much as
+    they do, in directions unrelated to it. It is 0 for keypoints on rigid points of the bodies and
+    about 1 for keypoints that wander, whatever the lengths and the picture's scale. Neither drawing
+    keypoints together nor holding them still lowers it (a keypoint that stands still, or jitters
+    about one place, scores as one that wanders): a pendulum keypoint that barely moves keeps its
+    distance from the pivot as well as one on the bob, and only this normalisation tells them
+    apart.
 
     **Arguments:**
 
@@ -174,9 +193,8 @@ def constraint_score(model: KeyCLD, keypoints: cldyn.Sequences) -> float:
             f"{model.num_keypoints} keypoints"
         )
     _, order = assign_keypoints(model, keypoints)
-    x = jnp.asarray(keypoints.x).reshape(*shape[:2], -1, 2)[:, :, list(order)].reshape(shape)
-    values = jax.vmap(jax.vmap(constraint))(x)
-    return float(constraint_drift(constraint, values.reshape(1, -1, values.shape[-1]), relative=True))
+    x = jnp.asarray(keypoints.x).reshape(*shape[:2], -1, 2)[:, :, list(order)].reshape(-1, shape[-1])
+    return float(_motion_spread(constraint, x))
 
 
 def choose_candidate(

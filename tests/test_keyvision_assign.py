@@ -114,36 +114,78 @@ def _cartpole_model():
     )
 
 
-def test_constraint_score_is_zero_for_rigid_keypoints_and_the_relative_spread_of_a_sliding_one():
+def _anchor_score(p):
+    """The score's closed form for one keypoint `(..., 2)` at a fixed distance from the origin:
+    the distance's variance over half the keypoint's total variance (its gradient is a unit vector)."""
+    p = np.asarray(p, np.float64).reshape(-1, 2)
+    return np.hypot(p[:, 0], p[:, 1]).var() / (p.var(axis=0).sum() / 2)
+
+
+def _cartpole_score(x):
+    """The closed form for the cart-pole's keypoints `(..., 4)`: the cart's height over half the cart's
+    total variance, and the pole's length over half the sum of both keypoints' (unit gradients), averaged."""
+    x = np.asarray(x, np.float64).reshape(-1, 4)
+    cart, tip = x[:, :2], x[:, 2:]
+    height = cart[:, 1].var() / (cart.var(axis=0).sum() / 2)
+    length = np.hypot(*(tip - cart).T).var() / ((cart.var(axis=0).sum() + tip.var(axis=0).sum()) / 2)
+    return (height + length) / 2
+
+
+def test_constraint_score_is_zero_for_rigid_keypoints_and_the_spread_against_the_motion_otherwise():
     model = _cartpole_model()
     # the cart at a fixed height and the pole's end at a fixed distance, in either numbering
     for cart_first in (True, False):
         rigid = cldyn.Sequences(_cartpole_keypoints(cart_first=cart_first), None, 0.05)
         assert keyvision.constraint_score(model, rigid) < 1e-10
-    # the second keypoint slides along the pole, at 0.3 to 0.5 of it: the cart's height keeps, the
-    # length's variance over its mean square (numpy, over every frame) is half the score (two
-    # constraints); scaling the picture changes neither term's relative part
+    # the second keypoint slides along the pole, at 0.6 to 1.0 of it: the cart's height keeps, and
+    # the length's variance over every frame is set against the two keypoints' motion
     x = _cartpole_keypoints(cart_first=True).astype(np.float64)
     rng = np.random.default_rng(5)
     fraction = rng.uniform(0.6, 1.0, x.shape[:2])
     x[..., 2:] = x[..., :2] + fraction[..., None] * (x[..., 2:] - x[..., :2])
-    length = np.hypot(*np.moveaxis(x[..., 2:] - x[..., :2], -1, 0))
-    expected = 0.5 * length.var() / length.mean() ** 2
     sliding = cldyn.Sequences(x.astype(np.float32), None, 0.05)
-    assert keyvision.constraint_score(model, sliding) == pytest.approx(expected, rel=1e-4)
-    # the cart off its rail adds the variance of its height (a coordinate, not relative)
+    assert keyvision.constraint_score(model, sliding) == pytest.approx(_cartpole_score(x), rel=1e-4)
+    # the picture's scale changes nothing
+    scaled = cldyn.Sequences((3 * x).astype(np.float32), None, 0.05)
+    assert keyvision.constraint_score(model, scaled) == pytest.approx(_cartpole_score(x), rel=1e-4)
+    # the cart off its rail adds its height's variance against the cart's motion
     x[..., 1] += 0.05 * rng.standard_normal(x.shape[:2])
-    length = np.hypot(*np.moveaxis(x[..., 2:] - x[..., :2], -1, 0))
-    expected = 0.5 * (x[..., 1].var() + length.var() / length.mean() ** 2)
-    assert keyvision.constraint_score(model, cldyn.Sequences(x.astype(np.float32), None, 0.05)) == (
-        pytest.approx(expected, rel=1e-4)
-    )
+    off = cldyn.Sequences(x.astype(np.float32), None, 0.05)
+    assert keyvision.constraint_score(model, off) == pytest.approx(_cartpole_score(x), rel=1e-4)
     unconstrained = cldyn.keycld_model(4, 1, None, key=jax.random.key(2), width=8)
     free = eqx.tree_at(lambda m: m.dynamics, model, unconstrained)
     with pytest.raises(ValueError, match="needs dynamics with constraints"):
         keyvision.constraint_score(free, sliding)
     with pytest.raises(ValueError, match="keypoints of 2 coordinates for a model of 2 keypoints"):
         keyvision.constraint_score(model, cldyn.Sequences(x[..., :2].astype(np.float32), None, 0.05))
+
+
+def test_a_keypoint_that_stands_still_scores_as_badly_as_one_that_wanders():
+    # a pendulum's keypoint: on the bob (radius 0.6, swinging) or standing at one place 0.6 from the
+    # pivot, each with the same jitter. Both keep their distance from the pivot to the jitter's
+    # size, so the distance's spread over its mean square cannot tell them apart (2.8e-4 each);
+    # against their motion, the one on the bob scores near 0 and the one standing still near 1,
+    # worse than a keypoint that wanders over the picture (0.24)
+    keys = jax.random.split(jax.random.key(1), 3)
+    model = keyvision.KeyCLD(
+        keyvision.KeypointEstimator(1, width=8, image_size=SIZE, key=keys[0]),
+        cldyn.keycld_model(2, 1, cldyn.keycld_constraint("pendulum"), key=keys[1], width=8),
+        keyvision.Renderer(1, width=8, image_size=SIZE, key=keys[2]),
+    )
+    rng = np.random.default_rng(7)
+    angle = rng.uniform(-2.5, 2.5, (40, 50))
+    bob = 0.6 * np.stack([np.sin(angle), -np.cos(angle)], axis=-1) + 0.01 * rng.standard_normal((40, 50, 2))
+    still = np.array([0.6 * np.sin(0.7), -0.6 * np.cos(0.7)]) + 0.01 * rng.standard_normal((40, 50, 2))
+    wander = rng.uniform(-0.8, 0.8, (40, 50, 2))
+    scores = {}
+    for name, p in (("bob", bob), ("still", still), ("wander", wander)):
+        scores[name] = keyvision.constraint_score(model, cldyn.Sequences(p.astype(np.float32), None, 0.05))
+        assert scores[name] == pytest.approx(_anchor_score(p), rel=1e-3)
+    assert scores["bob"] < 0.01 < 0.1 < scores["wander"] < 0.8 < scores["still"] < 1.2
+    # the spread over the mean square, the same for both to within 10%
+    distances = [np.hypot(*p.reshape(-1, 2).T) for p in (bob, still)]
+    relative = [d.var() / d.mean() ** 2 for d in distances]
+    assert relative[1] == pytest.approx(relative[0], rel=0.1)
 
 
 class _Centroid(keyvision.AbstractKeypointEstimator):
@@ -180,8 +222,8 @@ def test_training_continues_the_candidate_whose_keypoints_keep_the_constraints(t
     # two candidates with the same renderer and dynamics: the first's keypoint is the disc's centre
     # squashed to half its height (its distance from the pivot swings), the second's the centre. The
     # trials train only the renderers (these estimators have no parameters); the second is chosen,
-    # and the scores are the relative spreads of the distances (numpy on the true positions, within
-    # the centroid's error of a few thousandths)
+    # and the scores are their closed forms (numpy on the true positions, within the centroid's
+    # error of a few thousandths)
     data, bob = _disc_frames()
     keys = jax.random.split(jax.random.key(0), 2)
     dynamics = cldyn.keycld_model(2, 1, cldyn.keycld_constraint("pendulum"), key=keys[0], width=8)
@@ -201,9 +243,8 @@ def test_training_continues_the_candidate_whose_keypoints_keep_the_constraints(t
     assert list(result.stages) == ["candidate-1", "candidate-2", "autoencoder"]
     assert meter.lines[-2:] == [("scoring candidates", 1), ("scoring candidates", 2)]
     assert result.candidates["chosen"] == "candidate-2"
-    squashed = np.hypot(bob[..., 0], 0.5 * bob[..., 1])
     good, bad = result.candidates["scores"][1], result.candidates["scores"][0]
-    assert bad == pytest.approx(squashed.var() / squashed.mean() ** 2, rel=0.05)
+    assert bad == pytest.approx(_anchor_score(bob * [1.0, 0.5]), rel=0.05)
     assert good < 0.01 * bad
     record = json.loads((tmp_path / "candidates.json").read_text())
     assert record["chosen"] == "candidate-2" and record["scores"] == result.candidates["scores"]
@@ -234,8 +275,7 @@ def test_training_continues_the_candidate_whose_keypoints_keep_the_constraints(t
     subset = keyvision.train(candidates, five, key=jax.random.key(1), schedule=few).candidates
     assert len(encoded) == 2 and all(np.array_equal(e, np.asarray(five.frames)[[0, 3]]) for e in encoded)
     assert subset["runs"] == 2 and result.candidates["runs"] == 4
-    squashed = np.hypot(bob[::3, :, 0], 0.5 * bob[::3, :, 1])
-    assert subset["scores"][0] == pytest.approx(squashed.var() / squashed.mean() ** 2, rel=0.05)
+    assert subset["scores"][0] == pytest.approx(_anchor_score(bob[::3] * [1.0, 0.5]), rel=0.05)
     with pytest.raises(ValueError, match="candidate_runs"):
         keyvision.Schedule(candidate_runs=0)
     # the number of models must match the schedule, and a model without constraints has nothing to go by
