@@ -160,12 +160,13 @@ def constraint_score(model: KeyCLD, keypoints: cldyn.Sequences) -> float:
     \\operatorname{tr} \\operatorname{Cov} x_k}:$$
 
     each constraint's variance over the variance it would have if the keypoints moved as much as
-    they do, in directions unrelated to it. It is 0 for keypoints on rigid points of the bodies and
-    about 1 for keypoints that wander, whatever the lengths and the picture's scale. Neither drawing
-    keypoints together nor holding them still lowers it (a keypoint that stands still, or jitters
-    about one place, scores as one that wanders): a pendulum keypoint that barely moves keeps its
-    distance from the pivot as well as one on the bob, and only this normalisation tells them
-    apart.
+    they do, in directions unrelated to it. It is 0 for keypoints on rigid points of the bodies,
+    about 1 for a keypoint that jitters about one place, and of that order for keypoints that
+    wander (0.24 for one drawn uniformly over a square about a pendulum's pivot), whatever the
+    lengths and the picture's scale. So neither drawing keypoints together nor holding them still
+    lowers it. Set against a distance's mean square instead (this score's first form), a pendulum
+    keypoint that hardly moves keeps its distance from the pivot as well as one on the bob, and
+    scores as well.
 
     **Arguments:**
 
