@@ -60,7 +60,7 @@ class Schedule:
       every frame of those runs once per candidate; on 450 runs of the cart-pole and the acrobot, the
       scores on every 9th run ranked the four candidates of each of three trainings as the scores on
       all runs did, at a ninth of the time (checked with the score's first form, before it was set
-      against the keypoints' motion).
+      against the keypoints' motion; with the current form, on the pendulum's two trainings too).
     - `rigid_steps`: steps of the rigid stage (0 leaves it out), between stage (a) and stage (b):
       the keypoints numbered after the constraints (`keyvision.assign_keypoints`), then the
       estimator and renderer trained further on single frames with stage (a)'s loss plus
