@@ -61,13 +61,18 @@ def _cartpole_keypoints(runs=6, samples=20, *, cart_first: bool):
     return np.concatenate(pair, axis=-1).astype(np.float32)
 
 
-def test_assign_keypoints_finds_the_order_that_keeps_the_constraints():
+def _model(scene: str, keypoints: int) -> keyvision.KeyCLD:
+    """A small KeyCLD model with KeyCLD's constraints of `scene` and one input."""
     keys = jax.random.split(jax.random.key(1), 3)
-    model = keyvision.KeyCLD(
-        keyvision.KeypointEstimator(2, width=8, image_size=SIZE, key=keys[0]),
-        cldyn.keycld_model(4, 1, cldyn.keycld_constraint("cartpole"), key=keys[1], width=8),
-        keyvision.Renderer(2, width=8, image_size=SIZE, key=keys[2]),
+    return keyvision.KeyCLD(
+        keyvision.KeypointEstimator(keypoints, width=8, image_size=SIZE, key=keys[0]),
+        cldyn.keycld_model(2 * keypoints, 1, cldyn.keycld_constraint(scene), key=keys[1], width=8),
+        keyvision.Renderer(keypoints, width=8, image_size=SIZE, key=keys[2]),
     )
+
+
+def test_assign_keypoints_finds_the_order_that_keeps_the_constraints():
+    model = _model("cartpole", 2)
     swapped = cldyn.Sequences(_cartpole_keypoints(cart_first=False), None, 0.05)
     renumbered, order = keyvision.assign_keypoints(model, swapped)
     assert order == (1, 0)
@@ -79,7 +84,8 @@ def test_assign_keypoints_finds_the_order_that_keeps_the_constraints():
     same, order = keyvision.assign_keypoints(model, in_order)
     assert order == (0, 1) and same is model
     # no constraints, nothing to go by
-    free = eqx.tree_at(lambda m: m.dynamics, model, cldyn.keycld_model(4, 1, None, key=keys[1], width=8))
+    unconstrained = cldyn.keycld_model(4, 1, None, key=jax.random.key(2), width=8)
+    free = eqx.tree_at(lambda m: m.dynamics, model, unconstrained)
     assert keyvision.assign_keypoints(free, swapped)[1] == (0, 1)
 
 
@@ -105,15 +111,6 @@ def test_an_estimator_without_permute_keeps_the_identity_and_refuses_a_renumberi
 # -- choosing among autoencoders by their constraints -----------------------------------------------
 
 
-def _cartpole_model():
-    keys = jax.random.split(jax.random.key(1), 3)
-    return keyvision.KeyCLD(
-        keyvision.KeypointEstimator(2, width=8, image_size=SIZE, key=keys[0]),
-        cldyn.keycld_model(4, 1, cldyn.keycld_constraint("cartpole"), key=keys[1], width=8),
-        keyvision.Renderer(2, width=8, image_size=SIZE, key=keys[2]),
-    )
-
-
 def _anchor_score(p):
     """The score's closed form for one keypoint `(..., 2)` at a fixed distance from the origin:
     the distance's variance over half the keypoint's total variance (its gradient is a unit vector)."""
@@ -132,7 +129,7 @@ def _cartpole_score(x):
 
 
 def test_constraint_score_is_zero_for_rigid_keypoints_and_the_spread_against_the_motion_otherwise():
-    model = _cartpole_model()
+    model = _model("cartpole", 2)
     # the cart at a fixed height and the pole's end at a fixed distance, in either numbering
     for cart_first in (True, False):
         rigid = cldyn.Sequences(_cartpole_keypoints(cart_first=cart_first), None, 0.05)
@@ -166,12 +163,7 @@ def test_a_keypoint_that_stands_still_scores_as_badly_as_one_that_wanders():
     # size, so the distance's spread over its mean square cannot tell them apart (2.8e-4 each);
     # against their motion, the one on the bob scores near 0 and the one standing still near 1,
     # worse than a keypoint that wanders over the picture (0.24)
-    keys = jax.random.split(jax.random.key(1), 3)
-    model = keyvision.KeyCLD(
-        keyvision.KeypointEstimator(1, width=8, image_size=SIZE, key=keys[0]),
-        cldyn.keycld_model(2, 1, cldyn.keycld_constraint("pendulum"), key=keys[1], width=8),
-        keyvision.Renderer(1, width=8, image_size=SIZE, key=keys[2]),
-    )
+    model = _model("pendulum", 1)
     rng = np.random.default_rng(7)
     angle = rng.uniform(-2.5, 2.5, (40, 50))
     bob = 0.6 * np.stack([np.sin(angle), -np.cos(angle)], axis=-1) + 0.01 * rng.standard_normal((40, 50, 2))
