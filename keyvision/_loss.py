@@ -117,7 +117,11 @@ class ConstraintDrift(AbstractLoss):
     $\\operatorname{var} \\Phi_c / (\\operatorname{mean} \\Phi_c)^2$: the squared relative spread of
     a length, the same for a link drawn at any size, so the term cannot be lowered by drawing
     keypoints together. Other constraints (a coordinate, whose mean may be zero) keep their plain
-    variance.
+    variance. Neither form can tell a keypoint that holds still from one on a body: a keypoint
+    that hardly moves keeps its distance from a pivot as well as one on the bob, and scores as well
+    (`keyvision.constraint_score`, which judges autoencoders after the fact, sets each constraint's
+    variance against the keypoints' own motion for that reason). Reconstruction is what keeps such a
+    keypoint from standing still here.
 
     **Fields:**
 
