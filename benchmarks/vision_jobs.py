@@ -92,6 +92,8 @@ def main() -> None:
             parser.error(
                 f"--{name.replace('_', '-')}: at least 150 (two records 50 steps apart before the last)"
             )
+    if args.candidates != 1:
+        parser.error("--candidates: 1 (the trials of several candidates are stage (a) again)")
     data = (
         pathlib.Path(args.data) if args.data else ROOT / "runs" / "bench-vision-table" / "cartpole" / "data"
     )
@@ -99,8 +101,6 @@ def main() -> None:
         data = ROOT / "runs" / "bench-vision-jobs" / "data"
         if not (data / "frames.npz").is_file():
             _cli("render", "--scene", "keycld/cartpole", "--out", data, "--runs", 40)
-    if args.candidates != 1:
-        parser.error("--candidates: 1 (the trials of several candidates are stage (a) again)")
     options = recipe_options(args)
     results = {}
     with tempfile.TemporaryDirectory(prefix="vision-jobs-") as work:
