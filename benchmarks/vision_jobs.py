@@ -118,8 +118,9 @@ def main() -> None:
             },
         }
     shown = data.resolve().relative_to(ROOT) if data.resolve().is_relative_to(ROOT) else data
+    info = machine()
     result = {
-        "machine": machine(),
+        "machine": info,
         "data": str(shown),
         "recipe": options,
         "note": "throughput: the summed steps per second of N trainings at once over one training's alone, "
@@ -129,7 +130,7 @@ def main() -> None:
     lines = [
         "# Trainings at once on this machine (`benchmarks/vision_jobs.py`)",
         "",
-        f"{machine()['cpus']} CPUs, jax {machine()['jax']} ({machine()['backend']}); the table's recipe on "
+        f"{info['cpus']} CPUs, jax {info['jax']} ({info['backend']}); the table's recipe on "
         f"`{shown}`, {args.autoencoder_steps} steps of stage (a) and {args.joint_steps} of stage (c).",
         "",
         "| at once | stage (a) steps/s each | stage (c) steps/s each | throughput (a), (c) vs one alone "
