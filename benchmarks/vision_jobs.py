@@ -65,15 +65,21 @@ def _train_at_once(jobs: int, data: pathlib.Path, options: list, work: pathlib.P
         command += [str(o) for o in options] + ["--seed", str(seed), "--no-progress", "--overwrite"]
         log = open(work / f"jobs{jobs}-seed{seed}.log", "w")
         processes.append((out, subprocess.Popen(command, stdout=log, stderr=subprocess.STDOUT), log))
+    ended = {}  # each training's own wall time, taken when it ends, whichever ends first
+    while len(ended) < len(processes):
+        for index, (_, process, _) in enumerate(processes):
+            if index not in ended and process.poll() is not None:
+                ended[index] = round(time.perf_counter() - started, 1)
+        time.sleep(0.2)
     trainings = []
-    for out, process, log in processes:
-        status = process.wait()
+    for index, (out, process, log) in enumerate(processes):
+        status = process.returncode
         log.close()
         if status != 0:
             tail = pathlib.Path(log.name).read_text()[-2000:]
             raise SystemExit(f"vision_jobs: keyvision train failed with status {status}:\n{tail}")
         rates = {stage: _rate(out, stage) for stage in STAGES}
-        trainings.append({"steps_per_second": rates, "wall_seconds": round(time.perf_counter() - started, 1)})
+        trainings.append({"steps_per_second": rates, "wall_seconds": ended[index]})
     return {"trainings": trainings, "seconds": round(time.perf_counter() - started, 1)}
 
 

@@ -15,7 +15,7 @@ Every step is skipped when its output exists (a finished training is reused, an 
 resumed), so the budget can be spread over several calls. `--jobs N` runs N trainings at once, each a
 `keyvision train` process of its own (an ablation waits for the autoencoder stage it starts from): on a
 GPU, small models leave most of it idle, and several trainings share it well; on 2 CPU cores two at
-once train at 1.31 times the rate of one (`benchmarks/vision_jobs.py`).
+once train at 1.3-1.4 times the rate of one (`benchmarks/vision_jobs.py`).
 Each model trained here records `device.json`: the device, how many trainings ran at once, the wall
 time of its training process. Writes benchmarks/results/vision_table.{json,md}
 (the paper's Table 1 layout: VPT mean +- std over the validation runs and the median, KeyCLD's seeds
