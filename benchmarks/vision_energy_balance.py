@@ -35,6 +35,11 @@ KeyCLD's camera, `--runs` runs of `--frames` frames rendered with `--seed`), mea
   filter's window (the offsets 0, 1 and 2 modulo 3) have independent noises where the angles' noise is
   white: the columns are made of the first two (each velocity product symmetric in them, the learnt
   energy polarised to match), the instruments of the third.
+- and the `frames` fits again with the basis of an error of the learnt input map (`input basis`): the
+  work `W` of the `frames` rows is the learnt model's, `int u^T B(x)^T xd`, and a wrong `B` errs in it by
+  `int u^T dB(q)^T qd`, which is linear in the velocity and grows with the window like the dissipation
+  does. Columns `int u_k f_i(q) qd_j` (every control, joint and Fourier term of `--order`) hold any
+  smooth `dB`; the rows on MuJoCo's work need none.
 
 Each of `--models` (by default the two committed acrobot models: KeyCLD's, and the structured one of
 docs/images.md's "Control from frames") is measured on the same runs. Also reported: the estimator's
@@ -59,6 +64,9 @@ from _common import RESULTS, VISION_MODELS, machine, write  # noqa: E402
 
 SOURCES = {"stock": ("keycld/acrobot:stock", 0.05), "damping-free": ("keycld/acrobot", 0.0)}
 JOINTS = ("shoulder", "elbow")
+# the fits on the estimator's joints: least squares and instrumental variables, each also with the basis of an
+# error of the learnt input map (`_input_columns`)
+FRAME_SOURCES = ("frames", "frames, input basis", "frames, instrumented", "frames, instrumented, input basis")
 # the committed acrobot models: KeyCLD's, and the structured one of "Control from frames" (docs/images.md)
 MODELS = (VISION_MODELS["acrobot"], RESULTS / "vision_models" / "acrobot-structured")
 
@@ -123,15 +131,40 @@ def _differences(trig, qd, other, dt: float, first, last):
     )
 
 
+def _input_columns(trig, velocity, controls, dt: float, first, last):
+    """Columns for an error of the input map: `-int u_k f_i(q) qd_j` over each window, for every control
+    `k`, joint `j` and Fourier term `f_i`. The work that a wrong input matrix `B + dB(q)` reports is off
+    by `int u^T dB(q)^T qd`, linear in the velocity; any smooth `dB` lies in this basis."""
+    import numpy as np
+
+    columns = []
+    for k in range(controls.shape[-1]):
+        for j in range(velocity.shape[-1]):
+            flow = _cumulative(controls[..., k, None] * trig * velocity[..., j, None], dt)
+            columns.append(-(flow[:, last] - flow[:, first]))
+    return np.concatenate(columns, -1)
+
+
 def balance(
-    q, qd, energy, power, dt: float, order: int, edge: int, seed: int = 0, other=None, instrument=None
+    q,
+    qd,
+    energy,
+    power,
+    dt: float,
+    order: int,
+    edge: int,
+    seed: int = 0,
+    other=None,
+    instrument=None,
+    controls=None,
 ) -> dict:
     """Fit `E(b) - E(a) - W_ab = -sum_j c_j int qd_j^2 - [basis](b) + [basis](a)` over all windows, by least
     squares. With `other` and `instrument` (`_disjoint`'s second and third estimates), by instrumental
     variables: the velocity products are those of `qd` and `other` (`energy` must be made the same way) and
     the instruments are the same columns made of `instrument` alone. Noise in the velocities makes the
     columns noisy, which biases least squares (errors in variables); the instruments' noise is independent
-    of theirs, so it does not."""
+    of theirs, so it does not. With `controls` (`(runs, samples, l)`), the fit also takes an error of the
+    input map through which `power` was computed (`_input_columns`)."""
     import numpy as np
 
     runs, samples = q.shape[:2]
@@ -141,9 +174,27 @@ def balance(
     y = energy[:, last] - energy[:, first] - (work[:, last] - work[:, first])
     trig = _fourier(q, order)
     a = _differences(trig, qd, qd if other is None else other, dt, first, last)
+    if controls is not None:
+        mean = qd if other is None else (qd + other) / 2
+        inputs = _input_columns(trig, mean, controls, dt, first, last)
+        # the basis holds the reported work itself (a gear error), and with it every rescaling of the
+        # balance: E, W and the dissipation times any factor fit as well, so damping 0 does too. The
+        # gears fix that scale (the model's units are converted with them), so the work's own
+        # direction is taken out of the basis: it holds errors in the input map's shape, not its size.
+        reported = (work[:, last] - work[:, first])[..., None]
+        inputs = inputs - reported * (
+            np.sum(reported * inputs, axis=(0, 1)) / max(float(np.sum(reported**2)), 1e-300)
+        )
+        a = np.concatenate([a, inputs], -1)
     norm = np.linalg.norm(a.reshape(-1, a.shape[-1]), axis=0) + 1e-300
     if instrument is not None:
         z = _differences(trig, instrument, instrument, dt, first, last)
+        if controls is not None:
+            inputs = _input_columns(trig, instrument, controls, dt, first, last)
+            inputs = inputs - reported * (
+                np.sum(reported * inputs, axis=(0, 1)) / max(float(np.sum(reported**2)), 1e-300)
+            )
+            z = np.concatenate([z, inputs], -1)
         z_norm = np.linalg.norm(z.reshape(-1, z.shape[-1]), axis=0) + 1e-300
 
     def fit(rows):
@@ -261,7 +312,8 @@ def _from_frames(frames, model, spec, order: int, windows) -> tuple:
             "joules_per_model_unit": float(joules),
         }
 
-    fits, instrumented = {}, {}
+    controls = np.asarray(frames.u, dtype=float)
+    fits = {name: {} for name in FRAME_SOURCES}
     for label, (window, degree) in filters.items():
         smooth = savgol_filter(q, window, degree, axis=1)
         qd = savgol_filter(q, window, degree, deriv=1, delta=frames.dt, axis=1)
@@ -269,16 +321,30 @@ def _from_frames(frames, model, spec, order: int, windows) -> tuple:
         energy, power = (
             np.asarray(v).reshape(runs, samples) for v in energy_and_power(position, velocity, u)
         )
-        fits[label] = converted(balance(smooth, qd, energy, power, frames.dt, order, edge=window // 2))
+        for name, given in (("frames", None), ("frames, input basis", controls)):
+            fit = balance(smooth, qd, energy, power, frames.dt, order, window // 2, controls=given)
+            fits[name][label] = converted(fit)
         qa, qb, qc = _disjoint(q, window, degree, frames.dt, ends=qd)
         _, va = tangent(jnp.asarray(smooth.reshape(-1, 2)), jnp.asarray(qa.reshape(-1, 2)))
         _, vb = tangent(jnp.asarray(smooth.reshape(-1, 2)), jnp.asarray(qb.reshape(-1, 2)))
         energy, power = (
             np.asarray(v).reshape(runs, samples) for v in polarised_energy_and_power(position, va, vb, u)
         )
-        fit = balance(smooth, qa, energy, power, frames.dt, order, window // 2, other=qb, instrument=qc)
-        instrumented[label] = converted(fit)
-    return (fits, instrumented, filters, *_estimator_error(q, np.asarray(frames.extras["qpos"], dtype=float)))
+        for name, given in (("frames, instrumented", None), ("frames, instrumented, input basis", controls)):
+            fit = balance(
+                smooth,
+                qa,
+                energy,
+                power,
+                frames.dt,
+                order,
+                window // 2,
+                other=qb,
+                instrument=qc,
+                controls=given,
+            )
+            fits[name][label] = converted(fit)
+    return (fits, filters, *_estimator_error(q, np.asarray(frames.extras["qpos"], dtype=float)))
 
 
 def _estimator_error(q, truth) -> tuple:
@@ -333,7 +399,9 @@ def _markdown(result: dict) -> str:
         "with three velocity estimates from disjoint samples of each filter's window (offsets 0, 1 and 2 "
         "modulo 3): the columns are made of the first two, the instruments of the third, whose noise is "
         "independent of theirs, so noise in the velocities does not bias the fit as it biases least "
-        "squares.",
+        "squares. `input basis`: the `frames` fits with columns for an error of the learnt input map "
+        "through which their work is computed (`int u_k f_i(q) qd_j`, every control, joint and Fourier "
+        "term), which the rows on MuJoCo's work do not need.",
     ]
     for name, entry in result["models"].items():
         lines += ["", f"## `{name}` (`{entry['model']}`)", ""]
@@ -376,9 +444,7 @@ def _cases(model, spec, protocol, args, measured: dict) -> dict:
     cases = {}
     for data, (source, truth) in SOURCES.items():
         frames = keyvision.render(source, protocol=protocol, seed=args.seed, workers=1)
-        from_frames, instrumented, filters, error, warp, noise = _from_frames(
-            frames, model, spec, args.order, args.windows
-        )
+        from_frames, filters, error, warp, noise = _from_frames(frames, model, spec, args.order, args.windows)
         angles = np.asarray(frames.extras["qpos"], dtype=float)
         jitter = noise * np.random.default_rng(1).standard_normal(angles.shape)
         windows = {}
@@ -387,14 +453,21 @@ def _cases(model, spec, protocol, args, measured: dict) -> dict:
                 "filtered": state(data, frames, angles, smoothing),
                 "+ warp": _from_state(frames, args.order, angles + warp, smoothing),
                 "+ noise": _from_state(frames, args.order, angles + jitter, smoothing),
-                "frames": from_frames[label],
+                "frames": from_frames["frames"][label],
+                "frames, input basis": from_frames["frames, input basis"][label],
                 "filtered, instrumented": state(data, frames, angles, smoothing, instrumented=True),
                 "+ noise, instrumented": _from_state(
                     frames, args.order, angles + jitter, smoothing, instrumented=True
                 ),
-                "frames, instrumented": instrumented[label],
+                "frames, instrumented": from_frames["frames, instrumented"][label],
+                "frames, instrumented, input basis": from_frames["frames, instrumented, input basis"][label],
             }
-            print(f"{data}, {label}: frames {from_frames[label]['damping']}", file=sys.stderr)
+            print(
+                f"{data}, {label}: "
+                + "; ".join(f"{name} {from_frames[name][label]['damping']}" for name in FRAME_SOURCES),
+                file=sys.stderr,
+                flush=True,
+            )
         cases[data] = {
             "scene": source,
             "true_damping": truth,
