@@ -11,10 +11,13 @@ against how much their motion blurs the mean image. For each scene and model thi
    the two frames; the share of pairs over the threshold by distance, and the distance at which half
    of them cross it.
 2. The model's tolerance. The model's renderer draws each validation frame from the estimator's
-   keypoints moved by a fixed offset (every keypoint by the same length, along its own motion, or in a random
-   direction); the share of frames whose error against the true frame exceeds the threshold, and
-   the median error over the threshold. The tolerance is the offset at which half of the frames
-   cross it (along the motion, interpolated): the keypoint error that ends a VPT.
+   keypoints moved by a fixed offset: every keypoint by the same length, along its own motion or in a
+   random direction (a keypoint that does not move between the neighbouring frames stays). Reported:
+   the share of frames whose error against the true frame exceeds the threshold, and the median
+   error over the threshold. The tolerance is the offset at which half of the frames cross it (along
+   the motion, interpolated): the keypoint error that ends a VPT, in the estimator's pixels (its
+   keypoints need not sit on the bodies' points, so this differs from the scene's tolerance by the
+   estimator's scale).
 3. The model's own predictions (`keyvision.predict`, the first three frames encoded): the VPT, and
    the distance in pixels between the predicted keypoints and the estimator's keypoints of the true
    frames a quarter of the way into the prediction, half way and at its end (median over runs; the
@@ -161,7 +164,7 @@ def run(scene: str, model_dir: pathlib.Path, data: pathlib.Path | None, seed: in
     images = validation.images(np.float32)
     controls = validation.u.astype(np.float32)
     threshold = keyvision.prediction_threshold(images)
-    keypoints = np.stack([np.asarray(encode_batch(model, jnp.asarray(run))) for run in images])
+    keypoints = np.stack([np.asarray(encode_batch(model, jnp.asarray(each))) for each in images])
     points = validation.extras["keypoints"]
     truth = validation.camera.to_image(points.reshape(*points.shape[:2], -1, 2)).reshape(
         *points.shape[:2], -1
