@@ -145,6 +145,14 @@ def _input_columns(trig, velocity, controls, dt: float, first, last):
     return np.concatenate(columns, -1)
 
 
+def _without(columns, direction):
+    """`columns` `(runs, windows, C)` less their least-squares projection on `direction` `(..., 1)`."""
+    import numpy as np
+
+    share = np.sum(direction * columns, axis=(0, 1)) / max(float(np.sum(direction**2)), 1e-300)
+    return columns - direction * share
+
+
 def balance(
     q,
     qd,
@@ -182,19 +190,13 @@ def balance(
         # gears fix that scale (the model's units are converted with them), so the work's own
         # direction is taken out of the basis: it holds errors in the input map's shape, not its size.
         reported = (work[:, last] - work[:, first])[..., None]
-        inputs = inputs - reported * (
-            np.sum(reported * inputs, axis=(0, 1)) / max(float(np.sum(reported**2)), 1e-300)
-        )
-        a = np.concatenate([a, inputs], -1)
+        a = np.concatenate([a, _without(inputs, reported)], -1)
     norm = np.linalg.norm(a.reshape(-1, a.shape[-1]), axis=0) + 1e-300
     if instrument is not None:
         z = _differences(trig, instrument, instrument, dt, first, last)
         if controls is not None:
             inputs = _input_columns(trig, instrument, controls, dt, first, last)
-            inputs = inputs - reported * (
-                np.sum(reported * inputs, axis=(0, 1)) / max(float(np.sum(reported**2)), 1e-300)
-            )
-            z = np.concatenate([z, inputs], -1)
+            z = np.concatenate([z, _without(inputs, reported)], -1)
         z_norm = np.linalg.norm(z.reshape(-1, z.shape[-1]), axis=0) + 1e-300
 
     def fit(rows):

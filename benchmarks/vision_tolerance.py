@@ -69,9 +69,8 @@ def scene_tolerance(images, truth, threshold: float, offsets, lags: int = 10) ->
         moved.append(step * pixels)
         ratio.append(error / threshold)
     moved, ratio = np.concatenate(moved), np.concatenate(ratio)
-    edges = np.asarray(offsets, float)
     shares, medians, pairs = [], [], []
-    for centre in edges:  # pairs within a quarter pixel of each offset
+    for centre in offsets:  # pairs within a quarter pixel of each offset
         near = np.abs(moved - centre) <= 0.125 if centre > 0 else moved <= 0.125
         pairs.append(int(near.sum()))
         shares.append(float(np.mean(ratio[near] > 1)) if near.any() else None)
