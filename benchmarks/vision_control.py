@@ -16,8 +16,9 @@ Writes benchmarks/results/vision_control.json and .md, and vision_control_<scene
     python benchmarks/vision_control.py --report          # the table again from the saved rows
     python benchmarks/vision_control.py --model acrobot=DIR --linearise   # the true loop at the target only
 
-Rows are kept per scene, dynamics kind (`keycld`, `keycld-structured`, ...) and metric: a model of
-another kind adds rows beside the others.
+Rows are kept per scene, model directory and metric: another model of a scene adds rows beside
+the others (the table names each by its directory), and its plot is vision_control_<directory>.png
+with `_mass` for that metric.
 
 `--metric mass` weighs the shaped potential and the damping by the learnt mass matrix: a Lagrangian
 learnt from images has an arbitrary scale, and eq. 32's gains act differently at each; with the mass
@@ -131,10 +132,11 @@ def _write(rows: list) -> None:
         "gravity rate at upright (the largest eigenvalue of M^-1 G): by how much a learnt potential's "
         "curvature there may be wrong before kp = 5 cannot hold it (mass metric, exact masses).",
         "",
-        "| scene | dynamics | metric | sees | success | median final error (m) | median time to 0.05 m (s) | "
+        "| scene | model | dynamics | metric | sees | success | median final error (m) | "
+        "median time to 0.05 m (s) | "
         "slowest mode: rate (1/s), ratio | true loop at the target (1/s) | tolerance | loop steps/s | "
         "controller frames/s | real time |",
-        "| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |",
+        "| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |",
     ]
     for row in rows:
         reached, mode = row["median_time_to_tolerance"], row.get("slowest_mode")
@@ -146,7 +148,8 @@ def _write(rows: list) -> None:
             else f"{truth['largest_real_part']:+.2f} | {truth['curvature_tolerance']:.0%}"
         )
         lines.append(
-            f"| {row['scene']} | {_kind(row)} | {_metric(row)} | {row['observe']} | "
+            f"| {row['scene']} | {pathlib.Path(row['model']).name} | {_kind(row)} | {_metric(row)} | "
+            f"{row['observe']} | "
             f"{row['success_rate']:.0%} | "
             f"{row['median_final_error']:.3f} | {'-' if reached is None else f'{reached:.2f}'} | {mode} | "
             f"{truth} | "
@@ -154,6 +157,12 @@ def _write(rows: list) -> None:
             f"{row['real_time_rate']:.0f} |"
         )
     write("vision_control", result, "\n".join(lines) + "\n")
+
+
+def _relative(directory) -> str:
+    """A model directory as the rows keep it: relative to the repository where it lies inside."""
+    path = pathlib.Path(directory).resolve()
+    return str(path.relative_to(ROOT) if path.is_relative_to(ROOT) else path)
 
 
 def main() -> None:
@@ -197,8 +206,8 @@ def main() -> None:
             model, _ = keyvision.load_model(directory)
             truth = keyvision.target_linearisation(model, f"keycld/{name}", metric=args.metric)
             print(name, directory, args.metric, truth, flush=True)
-            key = (name, directory, args.metric)
-            matched = [r for r in rows if (r["scene"], r["model"], _metric(r)) == key]
+            key = (name, _relative(directory), args.metric)
+            matched = [r for r in rows if (r["scene"], _relative(r["model"]), _metric(r)) == key]
             if not matched:
                 raise SystemExit(f"no saved rows of {name}={directory} with --metric {args.metric}")
             for row in matched:
@@ -206,10 +215,9 @@ def main() -> None:
         _write(rows)
         return
     new = []
-    kinds = {}
     for name, directory in models.items():
         model, spec = keyvision.load_model(directory)
-        kinds[name] = kind = spec["dynamics"]["kind"]
+        kind = spec["dynamics"]["kind"]
         truth = keyvision.target_linearisation(model, f"keycld/{name}", metric=args.metric)
         results = []
         for observe in ("frames", "state"):
@@ -229,7 +237,7 @@ def main() -> None:
             new.append(
                 {
                     "scene": name,
-                    "model": directory,
+                    "model": _relative(directory),
                     "kind": kind,
                     "observe": observe,
                     "metric": args.metric,
@@ -246,20 +254,19 @@ def main() -> None:
                 }
             )
             print(new[-1], flush=True)
-        suffix = "" if kind == "keycld" else f"_{kind}"
-        suffix += "" if args.metric == "euclidean" else f"_{args.metric}"
-        _plot(RESULTS / f"vision_control_{name}{suffix}.png", results)
+        suffix = "" if args.metric == "euclidean" else f"_{args.metric}"
+        _plot(RESULTS / f"vision_control_{pathlib.Path(directory).name}{suffix}.png", results)
     # rows of scenes and metrics not run this time are kept from the previous results (one scene
     # per call fits)
     rows, previous = [], RESULTS / "vision_control.json"
     if previous.is_file():
         import json
 
-        run = {(scene, kinds[scene], args.metric) for scene in models}
+        run = {(scene, _relative(models[scene]), args.metric) for scene in models}
         rows = [
             r
             for r in json.loads(previous.read_text())["rows"]
-            if (r["scene"], _kind(r), _metric(r)) not in run
+            if (r["scene"], _relative(r["model"]), _metric(r)) not in run
         ]
     _write(rows + new)
 

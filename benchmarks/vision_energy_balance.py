@@ -45,9 +45,11 @@ Each of `--models` (by default the two committed acrobot models: KeyCLD's, and t
 docs/images.md's "Control from frames") is measured on the same runs. Also reported: the estimator's
 joint-angle error against MuJoCo (sign and offset aligned) and the part of it
 that is not a function of the pose. Writes benchmarks/results/vision_energy_balance.{json,md} (with a
-nonzero seed, `vision_energy_balance_seed<seed>.{json,md}`) and prints the JSON.
+nonzero seed, `vision_energy_balance_seed<seed>.{json,md}`; `--name` for another) and prints the JSON.
 
     MUJOCO_GL=egl python benchmarks/vision_energy_balance.py   # about 35 min on 2 cores
+    MUJOCO_GL=egl python benchmarks/vision_energy_balance.py --seed 1 \
+        --models benchmarks/results/vision_models/acrobot-augmented --name vision_energy_balance_aug_seed1
 """
 
 import argparse
@@ -498,6 +500,10 @@ def main() -> None:
         default=[str(path) for path in MODELS],
         help="directories of learnt acrobot models (keyvision.load_model)",
     )
+    parser.add_argument(
+        "--name",
+        help="the results' name (default: vision_energy_balance, with _seed<N> for a --seed other than 0)",
+    )
     args = parser.parse_args()
 
     import jax
@@ -529,7 +535,8 @@ def main() -> None:
         "wall_s": time.perf_counter() - started,
         "machine": machine(),
     }
-    write("vision_energy_balance" + (f"_seed{args.seed}" if args.seed else ""), result, _markdown(result))
+    name = args.name or "vision_energy_balance" + (f"_seed{args.seed}" if args.seed else "")
+    write(name, result, _markdown(result))
 
 
 if __name__ == "__main__":

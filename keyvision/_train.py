@@ -108,8 +108,9 @@ class Schedule:
       `"relative"` (pooled, each length's variance over its mean square,
       `ConstraintDrift(pooled=True, relative=True)`: scale-free, it gains nothing from drawing
       keypoints together).
-    - `augment`: show the estimator every frame of stages (a) and (c) under a random dihedral
-      transform (`keyvision.Augment`), its keypoints mapped back: trains an equivariant estimator.
+    - `augment`: show the estimator every frame of the stages that train it (the candidates' trials,
+      (a), the rigid stage and (c)) under a random dihedral transform (`keyvision.Augment`), its
+      keypoints mapped back: trains an equivariant estimator.
     - `learning_rate`: Adam's peak learning rate for the networks in stage (a) (after element-wise
       gradient clipping at 5); `dynamics_learning_rate` for stages (b) and (d), `joint_learning_rate` for
       stage (c); with `None` (the default) `keyvision.train` chooses and records 1e-3 for dynamics with
