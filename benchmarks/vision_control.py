@@ -8,7 +8,7 @@ model's keypoint frame) measure what seeing through the camera costs. The loop's
 estimate, control) and the controller's alone (estimate and control: a frame in, a command out) are
 reported against the scene's control rate.
 
-Writes benchmarks/results/vision_control.json and .md, and vision_control_<scene>.png; prints the JSON.
+Writes benchmarks/results/vision_control.json and .md, and a plot per model (below); prints the JSON.
 
     python benchmarks/vision_control.py                                   # the shipped pendulum model
     python benchmarks/vision_control.py --model cartpole=runs/cartpole-model --runs 20
@@ -256,7 +256,7 @@ def main() -> None:
             print(new[-1], flush=True)
         suffix = "" if args.metric == "euclidean" else f"_{args.metric}"
         _plot(RESULTS / f"vision_control_{pathlib.Path(directory).name}{suffix}.png", results)
-    # rows of scenes and metrics not run this time are kept from the previous results (one scene
+    # rows of the models and metrics not run this time are kept from the previous results (one scene
     # per call fits)
     rows, previous = [], RESULTS / "vision_control.json"
     if previous.is_file():
