@@ -7,6 +7,14 @@ import pathlib
 import platform
 
 RESULTS = pathlib.Path(__file__).resolve().parent / "results"
+
+
+def repo_path(path) -> str:
+    """`path` as result files keep it: relative to the repository where it lies inside, else absolute."""
+    path, root = pathlib.Path(path).resolve(), RESULTS.parents[1]
+    return str(path.relative_to(root) if path.is_relative_to(root) else path)
+
+
 # the models learnt from images that the vision benchmarks use: the shipped pendulum, the committed others
 VISION_MODELS = {
     "pendulum": RESULTS.parents[1] / "keyvision" / "demo" / "pendulum",

@@ -39,7 +39,7 @@ import numpy as np
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "benchmarks"))
-from _common import RESULTS, machine, write  # noqa: E402
+from _common import RESULTS, machine, repo_path, write  # noqa: E402
 
 
 def _plot(path, results) -> None:
@@ -159,12 +159,6 @@ def _write(rows: list) -> None:
     write("vision_control", result, "\n".join(lines) + "\n")
 
 
-def _relative(directory) -> str:
-    """A model directory as the rows keep it: relative to the repository where it lies inside."""
-    path = pathlib.Path(directory).resolve()
-    return str(path.relative_to(ROOT) if path.is_relative_to(ROOT) else path)
-
-
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument(
@@ -206,8 +200,8 @@ def main() -> None:
             model, _ = keyvision.load_model(directory)
             truth = keyvision.target_linearisation(model, f"keycld/{name}", metric=args.metric)
             print(name, directory, args.metric, truth, flush=True)
-            key = (name, _relative(directory), args.metric)
-            matched = [r for r in rows if (r["scene"], _relative(r["model"]), _metric(r)) == key]
+            key = (name, repo_path(directory), args.metric)
+            matched = [r for r in rows if (r["scene"], repo_path(r["model"]), _metric(r)) == key]
             if not matched:
                 raise SystemExit(f"no saved rows of {name}={directory} with --metric {args.metric}")
             for row in matched:
@@ -237,7 +231,7 @@ def main() -> None:
             new.append(
                 {
                     "scene": name,
-                    "model": _relative(directory),
+                    "model": repo_path(directory),
                     "kind": kind,
                     "observe": observe,
                     "metric": args.metric,
@@ -262,11 +256,11 @@ def main() -> None:
     if previous.is_file():
         import json
 
-        run = {(scene, _relative(models[scene]), args.metric) for scene in models}
+        run = {(scene, repo_path(models[scene]), args.metric) for scene in models}
         rows = [
             r
             for r in json.loads(previous.read_text())["rows"]
-            if (r["scene"], _relative(r["model"]), _metric(r)) not in run
+            if (r["scene"], repo_path(r["model"]), _metric(r)) not in run
         ]
     _write(rows + new)
 

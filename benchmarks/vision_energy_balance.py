@@ -62,7 +62,7 @@ os.environ.setdefault("MUJOCO_GL", "egl")
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "benchmarks"))
-from _common import RESULTS, VISION_MODELS, machine, write  # noqa: E402
+from _common import RESULTS, VISION_MODELS, machine, repo_path, write  # noqa: E402
 
 SOURCES = {"stock": ("keycld/acrobot:stock", 0.05), "damping-free": ("keycld/acrobot", 0.0)}
 JOINTS = ("shoulder", "elbow")
@@ -520,7 +520,7 @@ def main() -> None:
         model, spec = keyvision.load_model(directory)
         path = pathlib.Path(directory).resolve()
         models[path.name] = {
-            "model": str(path.relative_to(ROOT)) if path.is_relative_to(ROOT) else str(path),
+            "model": repo_path(path),
             "cases": _cases(model, spec, protocol, args, measured),
         }
     dt = next(iter(next(iter(models.values()))["cases"].values()))["dt"]

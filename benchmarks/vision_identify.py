@@ -33,7 +33,7 @@ os.environ.setdefault("MUJOCO_GL", "egl")
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "benchmarks"))
-from _common import RESULTS, VISION_MODELS, machine, write  # noqa: E402
+from _common import RESULTS, VISION_MODELS, machine, repo_path, write  # noqa: E402
 
 MODELS = VISION_MODELS
 PAPER_FRAMES = 50  # frames per run in the paper's protocol; rows of other lengths say theirs
@@ -94,7 +94,7 @@ def _case(scene: str, joints: dict | None, seed: int, args, *, stock: bool = Fal
         jax.clear_caches()
     report = result.identification
     return {
-        "model": _relative(args.models[scene]),
+        "model": repo_path(args.models[scene]),
         "frames": args.frames,
         "outcome": report.outcome,
         "effects": list(result.effects),
@@ -116,11 +116,6 @@ def _frames(row: dict) -> int:
 def _length(row: dict) -> str:
     """How a row's runs differ from the paper's, for its label ("" for the paper's length)."""
     return "" if _frames(row) == PAPER_FRAMES else f", runs of {_frames(row)} frames"
-
-
-def _relative(directory) -> str:
-    path = pathlib.Path(directory).resolve()
-    return str(path.relative_to(ROOT) if path.is_relative_to(ROOT) else path)
 
 
 def main() -> None:
