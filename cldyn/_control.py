@@ -292,6 +292,13 @@ class EnergyShaping(AbstractControl):
       Lagrangian learnt from images is only defined up to a factor (`M`, `V` and `g` scaled together
       give the same motion), and eq. 32's gains act differently at each factor; with `"mass"` the
       controls do not depend on it. Needs `damping="keypoint"`.
+    - `trim`: subtract the command at the target at rest, `u(x*, 0)`, from every command (not part of
+      eq. 32). Where the target is an equilibrium of the uncontrolled system (a pendulum upright or
+      hanging) that command is zero for an exact potential, and what a learnt one commands there is
+      its error. Without the trim the loop rests where the shaped spring balances that error, about
+      the gravity rate over `kp` times the learnt upright's offset; with it the rest is the target to
+      first order. A constant control, so exact for an input matrix that does not change near the
+      target (joint motors). Wrong for a target that is not an equilibrium.
 
     Call it as a feedback policy `u = controller(t, x, xd)`, e.g. `cldyn.simulate(...,
     control=controller)`.
@@ -314,6 +321,7 @@ class EnergyShaping(AbstractControl):
     project: bool = eqx.field(static=True)
     damping: AbstractDampingInjection
     metric: str = eqx.field(static=True)
+    trim: bool = eqx.field(static=True)
     depends_on_state = True
 
     def __init__(
@@ -327,6 +335,7 @@ class EnergyShaping(AbstractControl):
         project: bool = True,
         damping: AbstractDampingInjection | str = KeypointDampingInjection(),
         metric: str = "euclidean",
+        trim: bool = False,
     ):
         if not isinstance(system, ConstrainedLagrangian):
             raise TypeError(f"system must be a ConstrainedLagrangian, got {type(system).__name__}")
@@ -357,6 +366,7 @@ class EnergyShaping(AbstractControl):
                 f"damping='keypoint', got {type(damping).__name__}"
             )
         self.metric = metric
+        self.trim = bool(trim)
 
     def _weigh(self, v: Vector) -> Vector:
         """`v` in the metric: `M v` for `"mass"`, `v` itself for `"euclidean"`."""
@@ -371,6 +381,15 @@ class EnergyShaping(AbstractControl):
     def __call__(self, t, x: Vector, xd: Vector) -> Control:
         """The control `u(t, x, xd)`, shape `(l,)`."""
         del t
+        u = self._shaping(x, xd)
+        if self.trim:
+            u = u - self._shaping(self.x_target, jnp.zeros_like(self.x_target))
+        if self.limit is not None:
+            u = jnp.clip(u, -self.limit, self.limit)
+        return u
+
+    def _shaping(self, x: Vector, xd: Vector) -> Control:
+        """Eq. 32's command, before the trim and the limit."""
         g = self.system.input_matrix(x)
         if self.project and self.system.num_constraints > 0:
             jac = self.system.constraint.jacobian(x)
@@ -384,10 +403,7 @@ class EnergyShaping(AbstractControl):
         gram = lx.MatrixLinearOperator(g.T @ g, lx.positive_semidefinite_tag)
         match = lambda f: lx.linear_solve(gram, g.T @ f, SmallDense()).value  # noqa: E731
         # keypoint damping is `match(force - kd * xd)`: in the mass metric, `xd` weighed
-        u = self.damping(match, force, g, self._weigh(xd), self.kd)
-        if self.limit is not None:
-            u = jnp.clip(u, -self.limit, self.limit)
-        return u
+        return self.damping(match, force, g, self._weigh(xd), self.kd)
 
 
 def hinge_extremes(count: int, height: Callable[[np.ndarray], float]) -> tuple[np.ndarray, np.ndarray]:

@@ -27,6 +27,7 @@ from ._scene import _HINGE, _mujoco, _scene
 
 _SETTLE = 0.5  # seconds at the end of a run over which the target must hold
 _SHADOW_SIZE = 512
+_REST_ITERATIONS = 8  # chord steps from the linearised rest of `target_linearisation`
 
 
 def _as_images(frames) -> Array:
@@ -73,8 +74,8 @@ class FramePolicy(eqx.Module):
       (KeyCLD, KeyCLD-NC) with a potential and an input matrix.
     - `target`: the target keypoints `(2K,)`, or a target frame `(H, W, 3)` (see `image_target`).
     - `dt`: the time between frames, in seconds (the control period).
-    - `kp`, `kd`, `limit`, `damping`, `metric`: as `cldyn.EnergyShaping` (the paper: `kp = 5`,
-      `kd = 2`, `metric="euclidean"`). A Lagrangian learnt from images has an arbitrary scale, at
+    - `kp`, `kd`, `limit`, `damping`, `metric`, `trim`: as `cldyn.EnergyShaping` (the paper: `kp = 5`,
+      `kd = 2`, `metric="euclidean"`, no trim). A Lagrangian learnt from images has an arbitrary scale, at
       which eq. 32's gains act: `metric="mass"` makes them rates that do not depend on it.
 
     !!! example
@@ -101,6 +102,7 @@ class FramePolicy(eqx.Module):
         limit: float | None = None,
         damping: str = "keypoint",
         metric: str = "euclidean",
+        trim: bool = False,
     ):
         if not isinstance(model, KeyCLD):
             raise TypeError(f"FramePolicy: model must be a keyvision.KeyCLD, got {type(model).__name__}")
@@ -117,7 +119,14 @@ class FramePolicy(eqx.Module):
         dtype = parameter_dtype(model.dynamics)
         self.model = model
         self.controller = cldyn.EnergyShaping(
-            model.dynamics, target.astype(dtype), kp, kd, limit=limit, damping=damping, metric=metric
+            model.dynamics,
+            target.astype(dtype),
+            kp,
+            kd,
+            limit=limit,
+            damping=damping,
+            metric=metric,
+            trim=trim,
         )
         self.dt = float(dt)
 
@@ -223,6 +232,7 @@ def swing_up(
     kd: float = 2.0,
     limit: float | None = None,
     metric: str = "euclidean",
+    trim: bool = False,
     runs: int = 20,
     duration: float = 10.0,
     tolerance: float = 0.05,
@@ -255,9 +265,9 @@ def swing_up(
     - `observe`: `"frames"` (the policy sees rendered frames) or `"state"` (true state, for reference).
     - `target`: a target frame `(H, W, 3)`; by default the scene rendered in its upright posture
       (with `observe="state"`, a given frame is read by the estimator, the default is calibrated).
-    - `kp`, `kd`, `limit`, `metric`: the controller's gains, saturation and metric
+    - `kp`, `kd`, `limit`, `metric`, `trim`: the controller's gains, saturation, metric and trim
       (`cldyn.EnergyShaping`; `metric="mass"` for gains that do not depend on the learnt Lagrangian's
-      arbitrary scale).
+      arbitrary scale; `trim=True` subtracts the learnt command at the target, not part of eq. 32).
     - `runs`, `duration`, `tolerance`, `perturbation`, `seed`: the protocol.
     - `dt`: the control period; by default the frame interval of `keyvision.render`'s protocol for
       the scene (its timestep: 0.02 s for the pendulum, 0.01 s for the cart-pole and the acrobot).
@@ -304,7 +314,9 @@ def swing_up(
                 # the upright posture through the same map as the state: the estimator's own reading
                 # of the target frame differs from it by the calibration's residual there
                 target_keypoints = _calibrated(calibration, view.to_image(target_world))
-        policy = FramePolicy(model, target_keypoints, frame_dt, kp=kp, kd=kd, limit=limit, metric=metric)
+        policy = FramePolicy(
+            model, target_keypoints, frame_dt, kp=kp, kd=kd, limit=limit, metric=metric, trim=trim
+        )
         physics = setup.model
         physics.opt.timestep = physics_dt
         physics.opt.integrator = mujoco.mjtIntegrator.mjINT_RK4
@@ -388,6 +400,7 @@ def swing_up(
         "kp": kp,
         "kd": kd,
         "metric": metric,
+        "trim": trim,
         "runs": runs,
         "duration": duration,
         "dt": frame_dt,
@@ -442,6 +455,7 @@ def target_linearisation(
     kp: float = 5.0,
     kd: float = 2.0,
     metric: str = "euclidean",
+    trim: bool = False,
     camera: str | int = "fixed",
     step: float = 1e-4,
     seed: int = 0,
@@ -461,14 +475,22 @@ def target_linearisation(
     exact masses, the shaped spring holds a learnt potential whose curvature along a mode is wrong
     by less than `kp / rate` of the truth: the fastest rate sets how exact a learnt potential must be.
 
-    **Arguments:** `model`, `scene`, `kp`, `kd`, `metric` and `camera` as `swing_up`; `step`: the
+    **Arguments:** `model`, `scene`, `kp`, `kd`, `metric`, `trim` and `camera` as `swing_up`; `step`: the
     finite-difference step; `seed`: the calibration's random poses.
 
     **Returns:** a dict: `eigenvalues` (of the true closed loop, complex, as `[real, imag]` pairs
     sorted by real part, largest first), `largest_real_part` (1/s; positive: unstable),
     `gravity_rates` (1/s², the eigenvalues of `M^-1 G`, largest first), `curvature_tolerance`
     (`kp` over the largest rate), `control_at_target` (the learnt controller's command at rest at the
-    true upright posture; zero for an exact model).
+    true upright posture; zero for an exact model), `rest_offset` (joint units: where the true loop
+    comes to rest, off upright: first `-S^-1 a`, with `S` the stiffness block and `a` the joint
+    accelerations that the command at target causes, then chord steps with the same `S` on MuJoCo's
+    accelerations at rest; meaningful where the loop is stable)
+    and `rest_error` (metres: the largest distance of a true keypoint from its upright place in that
+    posture, what `swing_up`'s tolerance measures). Near upright the loop balances
+    `kp M (q - q*) = G (q_V - q_up)` for a learnt potential of the right curvature whose own upright
+    is `q_V` (`q_up` the true one): an error of the learnt upright comes back multiplied by the
+    gravity rate over `kp` (about 9 along the acrobot's fast mode).
     """
     check_positive("target_linearisation: step", step)
     mujoco = _mujoco()
@@ -485,11 +507,12 @@ def target_linearisation(
         data.qpos[:] = upright
         data.qvel[:] = 0.0
         mujoco.mj_forward(physics, data)
-        upright_keypoints = view.to_image(_true_keypoints(setup, data))
+        upright_world = _true_keypoints(setup, data)
+        upright_keypoints = view.to_image(upright_world)
         frame_dt = float(physics.opt.timestep) * protocol.steps_per_frame
         calibration = _calibrate(mujoco, setup, data, renderer, model, view, np.random.default_rng(seed))
         target = _calibrated(calibration, upright_keypoints)
-        policy = FramePolicy(model, target, frame_dt, kp=kp, kd=kd, metric=metric)
+        policy = FramePolicy(model, target, frame_dt, kp=kp, kd=kd, metric=metric, trim=trim)
     finally:
         renderer.close()
     dtype = policy.target.dtype
@@ -521,12 +544,24 @@ def target_linearisation(
     eigenvalues = sorted(np.linalg.eigvals(closed), key=lambda z: -z.real)
     # M^-1 G is d qacc / d qpos without control at rest: gravity's rates
     rates = np.sort(np.linalg.eigvals(gravity).real)[::-1]
+    at_target, command = acceleration(upright, rest)
+    # the loop's rest, qacc(upright + offset, 0) = 0: linearised, then chord steps with the same S
+    offset = np.zeros(n)
+    residual = at_target
+    for _ in range(_REST_ITERATIONS):
+        offset = offset - np.linalg.lstsq(stiffness, residual, rcond=None)[0]
+        residual = acceleration(upright + offset, rest)[0]
+    data.qpos[:], data.qvel[:] = upright + offset, rest
+    mujoco.mj_forward(physics, data)
+    rest_error = np.linalg.norm(_true_keypoints(setup, data) - upright_world, axis=-1).max()
     return {
         "eigenvalues": [[float(z.real), float(z.imag)] for z in eigenvalues],
         "largest_real_part": float(eigenvalues[0].real),
         "gravity_rates": rates.tolist(),
         "curvature_tolerance": float(kp / rates[0]) if rates[0] > 0 else float("inf"),
-        "control_at_target": acceleration(upright, rest)[1].tolist(),
+        "control_at_target": command.tolist(),
+        "rest_offset": offset.tolist(),
+        "rest_error": float(rest_error),
     }
 
 

@@ -172,3 +172,53 @@ def test_mass_metric_needs_keypoint_damping():
         cldyn.EnergyShaping(system, target, metric="mass", damping="output")
     with pytest.raises(ValueError, match="metric must be 'euclidean' or 'mass'"):
         cldyn.EnergyShaping(system, target, metric="joint")
+
+
+@pytest.mark.parametrize("tilt", [0.02, -0.05])
+def test_trim_removes_the_rest_offset_of_a_tilted_potential(tilt):
+    # The controller's model is the true pendulum (point mass m at length L, joint motor) with gravity
+    # rotated by `tilt`: its upright sits `tilt` off the true one. With the mass metric the true loop
+    # rests where, in the angle d from upright (any orientation, the learnt upright at d_l = +-tilt),
+    #   (g / L) (sin d - sin(d - d_l)) = kp sin d,
+    # i.e. d ~ (g / L) d_l / kp: the learnt upright's error times the gravity rate over kp. The trim
+    # subtracts the constant command at the target, the torque m g L sin(d_l); then d = 0 solves
+    #   (g / L) (sin d - sin(d - d_l) - sin d_l) = kp sin d exactly.
+    from scipy.optimize import brentq
+
+    g, length, kp = 9.81, 1.0, 5.0
+    system, joints = cldyn.systems.pendulum(length=length, gravity=g)
+    rotation = jnp.array([[np.cos(tilt), -np.sin(tilt)], [np.sin(tilt), np.cos(tilt)]])
+    weights = system.potential.weights
+    tilted = eqx.tree_at(lambda s: s.potential.weights, system, rotation.T @ weights)
+    upright = jnp.array([np.pi])
+    target = joints.keypoints(upright)
+    learnt_up = float(joints.joints(length * (rotation.T @ weights) / jnp.linalg.norm(weights))[0])
+    d_l = float(np.angle(np.exp(1j * (learnt_up - np.pi))))
+    assert abs(abs(d_l) - abs(tilt)) < 1e-9
+    rate = g / length
+    expected = brentq(lambda d: rate * (np.sin(d) - np.sin(d - d_l)) - kp * np.sin(d), -0.5, 0.5)
+    assert abs(expected) > 1.5 * abs(tilt)  # amplified by about rate / kp
+    ts = jnp.linspace(0.0, 30.0, 301)
+    x0, xd0 = joints.to_keypoints(upright, jnp.zeros(1))
+    rests = {}
+    for trim in (False, True):
+        controller = cldyn.EnergyShaping(tilted, target, kp, 2.0, metric="mass", trim=trim)
+        out = cldyn.simulate(system, x0, xd0, ts, control=controller, rtol=1e-9, atol=1e-9)
+        rests[trim] = float(np.angle(np.exp(1j * (float(joints.joints(out.x[-1])[0]) - np.pi))))
+        assert float(jnp.max(jnp.abs(out.xd[-1]))) < 1e-4  # at rest
+    assert rests[False] == pytest.approx(expected, rel=1e-4)
+    assert abs(rests[True]) < 1e-6
+    # the trimmed command at the target is zero, the untrimmed one the learnt gravity torque there
+    at_target = cldyn.EnergyShaping(tilted, target, kp, 2.0, metric="mass")(0.0, target, jnp.zeros(2))
+    trimmed = cldyn.EnergyShaping(tilted, target, kp, 2.0, metric="mass", trim=True)
+    assert abs(float(at_target[0])) == pytest.approx(m_g_l_sin := g * length * abs(np.sin(tilt)), rel=1e-6)
+    assert m_g_l_sin > 0 and abs(float(trimmed(0.0, target, jnp.zeros(2))[0])) < 1e-12
+
+
+def test_trim_keeps_the_limit_after_the_trim():
+    system, joints = cldyn.systems.pendulum()
+    target = joints.keypoints(jnp.array([np.pi]))
+    x, xd = joints.to_keypoints(jnp.array([0.3]), jnp.array([0.0]))
+    free = cldyn.EnergyShaping(system, target, 5.0, 2.0, trim=True)(0.0, x, xd)
+    limited = cldyn.EnergyShaping(system, target, 5.0, 2.0, trim=True, limit=0.1)(0.0, x, xd)
+    assert abs(float(free[0])) > 0.1 and float(limited[0]) == pytest.approx(np.sign(float(free[0])) * 0.1)

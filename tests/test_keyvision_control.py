@@ -191,3 +191,28 @@ def test_control_command_refuses_a_target_of_the_wrong_size(tmp_path, capsys):
     assert status == 2
     assert "--target" in err and "(32, 32) pixels" in err
     assert not (tmp_path / "out").exists()
+
+
+@pytest.mark.mujoco
+def test_target_linearisation_predicts_where_the_state_loop_rests():
+    # the linearised rest (-S^-1 a, from the command at the target) against MuJoCo's closed loop run
+    # to rest from near hanging (20 s: the slowest mode decays at 1/s); the shipped model's learnt
+    # upright is off a little, so the rest is too
+    model, _ = keyvision.load_model(keyvision._cli._demo.model_directory())
+    for trim in (False, True):
+        linear = keyvision.target_linearisation(model, "keycld/pendulum", metric="mass", trim=trim)
+        run = keyvision.swing_up(
+            model, "keycld/pendulum", observe="state", metric="mass", trim=trim, runs=1, duration=20.0
+        )
+        assert linear["largest_real_part"] < 0 and run["success"] == [True]
+        (offset,) = linear["rest_offset"]
+        hanging = np.pi * np.round(run["qpos"][0, 0, 0] / np.pi)  # the run starts within 0.2 rad of it
+        rest = float(np.angle(np.exp(1j * (run["qpos"][0, -1, 0] - hanging - np.pi))))  # from upright
+        if trim:
+            # minus its command at the target, the loop rests at the target (the calibrated upright)
+            assert abs(offset) < 1e-6 and linear["rest_error"] < 1e-6
+            assert abs(rest) < 1e-4 and run["final_error"][0] < 1e-4
+        else:
+            assert abs(offset) > 5e-3  # radians
+            assert rest == pytest.approx(offset, rel=1e-3)
+            assert run["final_error"][0] == pytest.approx(linear["rest_error"], rel=1e-3)

@@ -55,6 +55,12 @@ def register(subparsers) -> None:
         help="the shaped potential's metric: euclidean (eq. 32, the paper) or mass (gains as rates, "
         "whatever the learnt Lagrangian's scale); see cldyn.EnergyShaping",
     )
+    parser.add_argument(
+        "--trim",
+        action="store_true",
+        help="subtract the controller's command at the target at rest (not part of eq. 32: for a target "
+        "that is an equilibrium, it removes the rest offset of a learnt potential's error there)",
+    )
     parser.add_argument("--tolerance", type=positive(), default=0.05, help="success radius in metres")
     parser.add_argument("--seed", type=seed, default=0, help="seed of the initial states")
     add_overwrite(parser, "results")
@@ -105,6 +111,7 @@ def run(args: argparse.Namespace) -> int:
             kp=args.kp,
             kd=args.kd,
             metric=args.metric,
+            trim=args.trim,
             runs=args.runs,
             duration=args.duration,
             tolerance=args.tolerance,
@@ -127,6 +134,7 @@ def run(args: argparse.Namespace) -> int:
             "kp",
             "kd",
             "metric",
+            "trim",
             "runs",
             "duration",
             "dt",
