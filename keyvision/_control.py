@@ -485,9 +485,9 @@ def target_linearisation(
     true upright posture; zero for an exact model), `rest_offset` (joint units: where the true loop
     comes to rest, off upright: first `-S^-1 a`, with `S` the stiffness block and `a` the joint
     accelerations that the command at target causes, then chord steps with the same `S` on MuJoCo's
-    accelerations at rest; meaningful where the loop is stable)
-    and `rest_error` (metres: the largest distance of a true keypoint from its upright place in that
-    posture, what `swing_up`'s tolerance measures). Near upright the loop balances
+    accelerations at rest; meaningful where the loop is stable) and `rest_error` (metres: the largest
+    distance of a true keypoint from its upright place in that posture, what `swing_up`'s tolerance
+    measures). Near upright the loop balances
     `kp M (q - q*) = G (q_V - q_up)` for a learnt potential of the right curvature whose own upright
     is `q_V` (`q_up` the true one): an error of the learnt upright comes back multiplied by the
     gravity rate over `kp` (about 9 along the acrobot's fast mode).
