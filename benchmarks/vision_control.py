@@ -145,7 +145,7 @@ def _write(rows: list) -> None:
         "the controller subtracts its command at the target at rest (`cldyn.EnergyShaping(trim=True)`; not "
         "part of eq. 32, so these rows do not count for the paper's method). Predicted "
         "rest: where that linearised loop comes to rest (`rest_error`, the largest keypoint distance from "
-        "upright; meaningful where the loop is stable), the state rows' final error to compare: the "
+        "upright; none where the true loop at the target is unstable), the state rows' final error to compare: the "
         "learnt upright's error comes back multiplied by the gravity rate over kp.",
         "",
         "| scene | model | dynamics | metric | sees | success | median final error (m) | "
@@ -162,7 +162,12 @@ def _write(rows: list) -> None:
             truth = "- | - | -"
         else:
             rest = truth.get("rest_error")
-            rest = "-" if rest is None else f"{rest:.3f}"
+            if truth["largest_real_part"] > 0:
+                rest = "none (unstable)"  # an equilibrium the loop leaves, not a rest
+            elif rest is not None:
+                rest = f"{rest:.3f}"
+            else:
+                rest = "-"
             truth = f"{truth['largest_real_part']:+.2f} | {rest} | {truth['curvature_tolerance']:.0%}"
         lines.append(
             f"| {row['scene']} | {pathlib.Path(row['model']).name} | {_kind(row)} | {_label(row)} | "
