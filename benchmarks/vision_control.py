@@ -14,12 +14,13 @@ Writes benchmarks/results/vision_control.json and .md, and a plot per model (bel
     python benchmarks/vision_control.py --model cartpole=runs/cartpole-model --runs 20
     python benchmarks/vision_control.py --metric mass     # gains as rates (cldyn.EnergyShaping)
     python benchmarks/vision_control.py --metric mass --trim   # minus the command at the target
+    python benchmarks/vision_control.py --units si        # eq. 32's gains in SI units (camera, gears)
     python benchmarks/vision_control.py --report          # the table again from the saved rows
     python benchmarks/vision_control.py --model acrobot=DIR --linearise   # the true loop at the target only
 
-Rows are kept per scene, model directory, metric and trim: another model of a scene adds rows beside
-the others (the table names each by its directory), and its plot is vision_control_<directory>.png
-with `_mass` for that metric and `_trim` for the trim.
+Rows are kept per scene, model directory, metric, trim and units: another model of a scene adds rows
+beside the others (the table names each by its directory), and its plot is
+vision_control_<directory>.png with `_mass` for that metric, `_trim` for the trim and `_si` for SI units.
 
 `--metric mass` weighs the shaped potential and the damping by the learnt mass matrix: a Lagrangian
 learnt from images has an arbitrary scale, and eq. 32's gains act differently at each; with the mass
@@ -27,6 +28,11 @@ metric every mode near the target obeys e'' + kd e' + kp e = 0 whatever the scal
 are kept side by side. The learnt closed loop's slowest mode at the target is reported per model, and
 the true one's (the learnt controller on MuJoCo's dynamics linearised at upright): whether the target
 can be held at all.
+
+`--units si` keeps eq. 32 as printed but gives kp = 5, kd = 2 in SI units, as on the true model: the
+learnt model's lengths in metres (the camera's scale) and its energy in joules (the actuators' gears,
+the conversion of `keyvision.identify`). It fixes the scale, not the metric: the spring still pulls on
+the keypoints wherever the estimator put them on the bodies.
 """
 
 import argparse
@@ -65,20 +71,66 @@ def _metric(row: dict) -> str:
     return row.get("metric", "euclidean")  # rows from before the metric option: eq. 32's
 
 
-def _variant(row: dict) -> tuple[str, bool]:
-    """The controller of a row: its metric, and whether it trims (rows from before the trim: not)."""
-    return _metric(row), bool(row.get("trim", False))
+def _variant(row: dict) -> tuple[str, bool, str]:
+    """The controller of a row: its metric, whether it trims (rows from before the trim: not), and the
+    units its gains are given in (rows from before `--units`: the model's)."""
+    return _metric(row), bool(row.get("trim", False)), row.get("units", "model")
 
 
 def _label(row: dict) -> str:
-    return _metric(row) + (" + trim" if row.get("trim") else "")
+    units = ", SI units" if row.get("units", "model") == "si" else ""
+    return _metric(row) + units + (" + trim" if row.get("trim") else "")
+
+
+def _si_factor(model, scene: str, poses: int = 200, seed: int = 0) -> dict:
+    """The factor `s^2 / e` that turns eq. 32's gains given in SI units into the learnt model's units:
+    `s` metres per unit of the image frame (the camera's scale), `e` joules per unit of the learnt
+    energy (fixed by the actuators' gears, `keyvision.identify`'s conversion), evaluated on the
+    estimator's keypoints of `poses` frames of random poses. With `x = x_SI / s`, `E = E_SI / e`, eq. 32
+    `u = B_SI^+ (dV_SI - kp (x_SI - x*_SI) - kd xd_SI)` is `B^+ (dV - kp s^2/e (x - x*) - kd s^2/e xd)`."""
+    import equinox as eqx
+    import jax
+    import jax.numpy as jnp
+    import mujoco
+
+    from keyvision import _control
+    from keyvision._data import PlanarCamera
+    from keyvision._identify import actuator_gears, energy_scale, joint_structure, metres_per_unit
+    from keyvision._render import _scene_xml
+
+    _, setup = _control._model_scene(model, scene, "fixed", "si")
+    physics, rng = setup.model, np.random.default_rng(seed)
+    data, renderer = mujoco.MjData(physics), mujoco.Renderer(physics, model.image_size, model.image_size)
+    frames = []
+    for _ in range(poses):
+        for j in range(physics.njnt):
+            adr = physics.jnt_qposadr[j]
+            hinge = physics.jnt_type[j] == mujoco.mjtJoint.mjJNT_HINGE
+            data.qpos[adr] = rng.uniform(-np.pi, np.pi) if hinge else physics.qpos0[adr] + rng.uniform(-1, 1)
+        mujoco.mj_forward(physics, data)
+        renderer.update_scene(data, camera=setup.camera)
+        frames.append(renderer.render().copy())
+    renderer.close()
+    x = np.asarray(_control.encode_batch(model, np.stack(frames)), np.float64)
+    dynamics = jax.tree.map(lambda a: a.astype(jnp.float64) if eqx.is_inexact_array(a) else a, model.dynamics)
+    names = [mujoco.mj_id2name(physics, mujoco.mjtObj.mjOBJ_JOINT, j) for j in range(physics.njnt)]
+    structure = joint_structure(dynamics.constraint, x, names)
+    metres = metres_per_unit(PlanarCamera(setup.homography, setup.basis))
+    scale = energy_scale(dynamics, structure, x, actuator_gears(_scene_xml(scene)), metres)
+    return {
+        "factor": metres**2 / scale["joules_per_unit"],
+        "metres_per_unit": metres,
+        "joules_per_unit": scale["joules_per_unit"],
+        "joules_per_unit_by_joint": scale["per_joint"],
+        "spread": scale["spread"],
+    }
 
 
 def _kind(row: dict) -> str:
     return row.get("kind", "keycld")  # rows from before the structured model: KeyCLD's
 
 
-def _slowest_mode(model, target, metric: str) -> dict:
+def _slowest_mode(model, target, metric: str, kp: float = 5.0, kd: float = 2.0) -> dict:
     """The learnt closed loop's slowest mode at the target: the eigenvalues of the dynamics under the
     controller, linearised on the learnt constraints' tangent space there (orthonormal basis `T`), and
     the one that decays slowest: its rate (1/s) and damping ratio."""
@@ -89,7 +141,7 @@ def _slowest_mode(model, target, metric: str) -> dict:
 
     system = model.dynamics
     target = jnp.asarray(target, system.mass.matrix().dtype)
-    controller = cldyn.EnergyShaping(system, target, 5.0, 2.0, metric=metric)
+    controller = cldyn.EnergyShaping(system, target, kp, kd, metric=metric)
     k = system.size
     if system.num_constraints:
         _, _, vh = np.linalg.svd(np.asarray(system.constraint.jacobian(target), np.float64))
@@ -145,8 +197,11 @@ def _write(rows: list) -> None:
         "the controller subtracts its command at the target at rest (`cldyn.EnergyShaping(trim=True)`; not "
         "part of eq. 32, so these rows do not count for the paper's method). Predicted "
         "rest: where that linearised loop comes to rest (`rest_error`, the largest keypoint distance from "
-        "upright; none where the true loop at the target is unstable), the state rows' final error to compare: the "
-        "learnt upright's error comes back multiplied by the gravity rate over kp.",
+        "upright; none where the true loop at the target is unstable), the state rows' final error to "
+        "compare: the learnt upright's error comes back multiplied by the gravity rate over kp. `SI "
+        "units`: eq. 32 as printed with kp = 5, kd = 2 in SI units, the learnt model's lengths converted to "
+        "metres by the camera's scale and its energy to joules by the actuators' gears (kp, kd times s^2/e "
+        "in the model's units; `--units si`): what the paper's gains mean on the true model.",
         "",
         "| scene | model | dynamics | metric | sees | success | median final error (m) | "
         "median time to 0.05 m (s) | "
@@ -168,7 +223,9 @@ def _write(rows: list) -> None:
                 rest = f"{rest:.3f}"
             else:
                 rest = "-"
-            truth = f"{truth['largest_real_part']:+.2f} | {rest} | {truth['curvature_tolerance']:.0%}"
+            # kp over the fastest gravity rate for kp = 5 (a row in SI units ran 5 s^2/e in the model's)
+            tolerance = truth["curvature_tolerance"] / (row.get("si_conversion") or {}).get("factor", 1.0)
+            truth = f"{truth['largest_real_part']:+.2f} | {rest} | {tolerance:.0%}"
         lines.append(
             f"| {row['scene']} | {pathlib.Path(row['model']).name} | {_kind(row)} | {_label(row)} | "
             f"{row['observe']} | "
@@ -200,6 +257,14 @@ def main() -> None:
         help="subtract the controller's command at the target (cldyn.EnergyShaping(trim=True); not eq. 32)",
     )
     parser.add_argument(
+        "--units",
+        choices=("model", "si"),
+        default="model",
+        help="the units kp, kd are given in: the learnt model's (eq. 32 as printed) or SI, the model's "
+        "lengths in metres by the camera's scale and its energy in joules by the actuators' gears "
+        "(with --metric euclidean; the mass metric does not depend on units)",
+    )
+    parser.add_argument(
         "--report", action="store_true", help="run nothing: rewrite the table from the saved rows"
     )
     parser.add_argument(
@@ -209,6 +274,9 @@ def main() -> None:
         "added to its saved rows of this --metric",
     )
     args = parser.parse_args()
+    if args.units == "si" and args.metric != "euclidean":
+        parser.error("--units si goes with --metric euclidean (the mass metric does not depend on units)")
+    variant = (args.metric, args.trim, args.units)
     if args.report:
         import json
 
@@ -225,16 +293,18 @@ def main() -> None:
         rows = json.loads((RESULTS / "vision_control.json").read_text())["rows"]
         for name, directory in models.items():
             model, _ = keyvision.load_model(directory)
+            factor = _si_factor(model, f"keycld/{name}")["factor"] if args.units == "si" else 1.0
             truth = keyvision.target_linearisation(
-                model, f"keycld/{name}", metric=args.metric, trim=args.trim
+                model, f"keycld/{name}", kp=5.0 * factor, kd=2.0 * factor, metric=args.metric, trim=args.trim
             )
-            print(name, directory, args.metric, args.trim, truth, flush=True)
-            key = (name, repo_path(directory), (args.metric, args.trim))
+            print(name, directory, variant, truth, flush=True)
+            key = (name, repo_path(directory), variant)
             matched = [r for r in rows if (r["scene"], repo_path(r["model"]), _variant(r)) == key]
             if not matched:
                 raise SystemExit(
                     f"no saved rows of {name}={directory} with --metric {args.metric}"
                     + (" --trim" if args.trim else "")
+                    + (" --units si" if args.units == "si" else "")
                 )
             for row in matched:
                 row["true_target"] = truth
@@ -244,13 +314,19 @@ def main() -> None:
     for name, directory in models.items():
         model, spec = keyvision.load_model(directory)
         kind = spec["dynamics"]["kind"]
-        truth = keyvision.target_linearisation(model, f"keycld/{name}", metric=args.metric, trim=args.trim)
+        si = _si_factor(model, f"keycld/{name}") if args.units == "si" else None
+        kp, kd = (5.0, 2.0) if si is None else (5.0 * si["factor"], 2.0 * si["factor"])
+        truth = keyvision.target_linearisation(
+            model, f"keycld/{name}", kp=kp, kd=kd, metric=args.metric, trim=args.trim
+        )
         results = []
         for observe in ("frames", "state"):
             result = keyvision.swing_up(
                 model,
                 f"keycld/{name}",
                 observe=observe,
+                kp=kp,
+                kd=kd,
                 metric=args.metric,
                 trim=args.trim,
                 runs=args.runs,
@@ -269,7 +345,10 @@ def main() -> None:
                     "observe": observe,
                     "metric": args.metric,
                     "trim": args.trim,
-                    "slowest_mode": _slowest_mode(model, result["target_keypoints"], args.metric),
+                    "units": args.units,
+                    "gains_in_model_units": [kp, kd],
+                    "si_conversion": si,
+                    "slowest_mode": _slowest_mode(model, result["target_keypoints"], args.metric, kp, kd),
                     "true_target": truth,
                     "runs": args.runs,
                     "duration": args.duration,
@@ -283,6 +362,7 @@ def main() -> None:
             )
             print(new[-1], flush=True)
         suffix = ("" if args.metric == "euclidean" else f"_{args.metric}") + ("_trim" if args.trim else "")
+        suffix += "_si" if args.units == "si" else ""
         _plot(RESULTS / f"vision_control_{pathlib.Path(directory).name}{suffix}.png", results)
     # rows of the models and metrics not run this time are kept from the previous results (one scene
     # per call fits)
@@ -290,7 +370,7 @@ def main() -> None:
     if previous.is_file():
         import json
 
-        run = {(scene, repo_path(models[scene]), (args.metric, args.trim)) for scene in models}
+        run = {(scene, repo_path(models[scene]), variant) for scene in models}
         rows = [
             r
             for r in json.loads(previous.read_text())["rows"]
