@@ -11,12 +11,14 @@ that best fits the estimator's keypoints to them), and scored by the VPT, next t
 own. The keypoint columns give the rollout error in pixels: a dynamics model class that reaches VPT
 1 from MuJoCo's keypoints puts the gap on the estimator, not on the dynamics.
 
-Writes benchmarks/results/vision_oracle.json and .md; prints the JSON.
+Writes benchmarks/results/vision_oracle.json and .md, keeping the rows of the scenes not given; prints
+the JSON.
 
     python benchmarks/vision_oracle.py --model cartpole=benchmarks/results/vision_models/cartpole
 """
 
 import argparse
+import json
 import os
 import pathlib
 import sys
@@ -26,7 +28,9 @@ os.environ.setdefault("MUJOCO_GL", "egl")
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "benchmarks"))
-from _common import machine, write  # noqa: E402
+from _common import RESULTS, machine, write  # noqa: E402
+
+SCENES = ("pendulum", "cartpole", "acrobot")
 
 FRAMES_AT = (10, 25, 49)  # frames at which the keypoint rollout error is reported
 
@@ -131,7 +135,17 @@ def main() -> None:
     for given in args.model:
         name, _, directory = given.partition("=")
         rows.append(scene(name, pathlib.Path(directory), pathlib.Path(args.data) / name / "data", args.steps))
-    result = {"machine": machine(), "device": str(jax.devices()[0]), "scenes": rows}
+    # the rows of scenes not run this time are kept from the previous results (one scene per call fits)
+    previous = RESULTS / "vision_oracle.json"
+    if previous.is_file():
+        run = {row["scene"] for row in rows}
+        rows += [row for row in json.loads(previous.read_text())["scenes"] if row["scene"] not in run]
+    rows.sort(key=lambda row: SCENES.index(row["scene"]) if row["scene"] in SCENES else len(SCENES))
+    _write({"machine": machine(), "device": str(jax.devices()[0]), "scenes": rows})
+
+
+def _write(result: dict) -> None:
+    rows = result["scenes"]
     lines = [
         "# Where the VPT is lost: learnt dynamics against dynamics fitted to MuJoCo's keypoints",
         "",
