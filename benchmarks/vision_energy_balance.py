@@ -258,20 +258,16 @@ def _from_state(
     return fit | {"units": "N m s"}
 
 
-def _from_frames(frames, model, spec, order: int, windows) -> tuple:
-    """The balance on the estimator's joints for each Savitzky-Golay window of `windows` (degree 3) and
-    for the window and degree that `cldyn.identify` would choose on these keypoints, by least squares and
-    by instrumental variables (`_disjoint`); the filters used; and the estimator's error against MuJoCo
-    (`_estimator_error`)."""
+def _estimated_joints(model, spec, frames) -> tuple:
+    """The estimator's joint angles of every frame `(runs, samples, 2)` (unwrapped), the model's float64
+    dynamics, the joint structure, the keypoints, and the frames with the model's controls in place."""
     import equinox as eqx
     import jax
     import jax.numpy as jnp
     import numpy as np
-    from scipy.signal import savgol_filter
 
-    import cldyn
     import keyvision
-    from keyvision._identify import _place_controls, actuator_gears, energy_scale, metres_per_unit
+    from keyvision._identify import _place_controls
 
     frames = _place_controls(
         frames, keyvision.scene_actuators(spec["data"]["scene"]), model.dynamics.num_inputs
@@ -281,31 +277,69 @@ def _from_frames(frames, model, spec, order: int, windows) -> tuple:
     )
     dynamics = jax.tree.map(lambda a: a.astype(jnp.float64) if eqx.is_inexact_array(a) else a, model.dynamics)
     structure = keyvision.joint_structure(dynamics.constraint, x, JOINTS)
-    joints = structure.joint_map
     runs, samples, k = x.shape
-    q = np.asarray(jax.vmap(joints.inverse)(jnp.asarray(x.reshape(-1, k)))).reshape(runs, samples, -1)
-    q = np.unwrap(q, axis=1)
-    joules = energy_scale(
+    q = np.asarray(jax.vmap(structure.joint_map.inverse)(jnp.asarray(x.reshape(-1, k))))
+    return np.unwrap(q.reshape(runs, samples, -1), axis=1), dynamics, structure, x, frames
+
+
+def _joules(dynamics, structure, x, frames) -> float:
+    """Joules per unit of the learnt energy, fixed by the scene's gears (identify's conversion)."""
+    from keyvision._identify import actuator_gears, energy_scale, metres_per_unit
+
+    return energy_scale(
         dynamics,
         structure,
-        x.reshape(-1, k),
+        x.reshape(-1, x.shape[-1]),
         actuator_gears(frames.info["mjcf_xml"]),
         metres_per_unit(frames.camera),
     )["joules_per_unit"]
+
+
+def _polarised(dynamics):
+    """`(p, a, b, u) -> (V + a^T M b / 2, u^T B^T (a + b) / 2)`, jitted and batched: the energy with the
+    velocity products of two estimates (`E(p, a + b) - E(p, a - b) = 2 a^T M b`) and the work with their
+    mean."""
+    import jax
+    import jax.numpy as jnp
+
+    def polarised(p, a, b, c):
+        kinetic = (dynamics.energy(p, a + b) - dynamics.energy(p, a - b)) / 4
+        return dynamics.energy(p, jnp.zeros_like(a)) + kinetic, (a + b) / 2 @ (dynamics.input_matrix(p) @ c)
+
+    return jax.jit(jax.vmap(polarised))
+
+
+def _filters(x, dt: float, windows) -> dict:
+    """Savitzky-Golay filters by label: each window of `windows` at degree 3, and the window and degree
+    that `cldyn.identify` would choose on the keypoints `x`."""
+    import cldyn
+
+    choice = cldyn.Smoothing().choose(x, dt)
+    filters = {f"w = {w}": (w, 3) for w in windows}
+    filters[f"w = {choice.window}, degree {choice.order} (identify's choice)"] = (choice.window, choice.order)
+    return filters
+
+
+def _from_frames(frames, model, spec, order: int, windows) -> tuple:
+    """The balance on the estimator's joints for each Savitzky-Golay window of `windows` (degree 3) and
+    for the window and degree that `cldyn.identify` would choose on these keypoints, by least squares and
+    by instrumental variables (`_disjoint`); the filters used; and the estimator's error against MuJoCo
+    (`_estimator_error`)."""
+    import jax
+    import jax.numpy as jnp
+    import numpy as np
+    from scipy.signal import savgol_filter
+
+    q, dynamics, structure, x, frames = _estimated_joints(model, spec, frames)
+    joints = structure.joint_map
+    runs, samples, _ = x.shape
+    joules = _joules(dynamics, structure, x, frames)
     u = jnp.asarray(np.asarray(frames.u, dtype=float).reshape(-1, frames.u.shape[-1]))
     energy_and_power = jax.jit(
         jax.vmap(lambda p, v, c: (dynamics.energy(p, v), v @ (dynamics.input_matrix(p) @ c)))
     )
-
-    def polarised(p, a, b, c):
-        # V + a^T M b / 2, since E(p, a + b) - E(p, a - b) = 2 a^T M b; the work with the mean velocity
-        kinetic = (dynamics.energy(p, a + b) - dynamics.energy(p, a - b)) / 4
-        return dynamics.energy(p, jnp.zeros_like(a)) + kinetic, (a + b) / 2 @ (dynamics.input_matrix(p) @ c)
-
-    polarised_energy_and_power = jax.jit(jax.vmap(polarised))
-    choice = cldyn.Smoothing().choose(x, frames.dt)
-    filters = {f"w = {w}": (w, 3) for w in windows}
-    filters[f"w = {choice.window}, degree {choice.order} (identify's choice)"] = (choice.window, choice.order)
+    polarised_energy_and_power = _polarised(dynamics)
+    filters = _filters(x, frames.dt, windows)
     tangent = jax.vmap(lambda a, b: jax.jvp(joints.forward, (a,), (b,)))
 
     def converted(fit):

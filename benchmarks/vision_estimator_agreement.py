@@ -39,37 +39,21 @@ os.environ.setdefault("MUJOCO_GL", "egl")
 ROOT = pathlib.Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "benchmarks"))
 from _common import RESULTS, machine, repo_path, write  # noqa: E402
-from vision_energy_balance import JOINTS, SOURCES, _fourier, balance  # noqa: E402
+from vision_energy_balance import (  # noqa: E402
+    SOURCES,
+    _estimated_joints,
+    _filters,
+    _fourier,
+    _joules,
+    _polarised,
+    balance,
+)
 
 MODELS = tuple(
     RESULTS / "vision_models" / name
     for name in ("acrobot-structured", "acrobot-augmented", "acrobot-augmented-seed2")
 )
 WINDOWS = (9, 15, 25)
-
-
-def _joints(model, spec, frames):
-    """The estimator's joint angles of every frame `(runs, samples, 2)`, its float64 dynamics, the joint
-    structure and the keypoints, and the frames with the model's controls in place."""
-    import equinox as eqx
-    import jax
-    import jax.numpy as jnp
-    import numpy as np
-
-    import keyvision
-    from keyvision._identify import _place_controls
-
-    frames = _place_controls(
-        frames, keyvision.scene_actuators(spec["data"]["scene"]), model.dynamics.num_inputs
-    )
-    x = np.asarray(
-        keyvision.encode_sequences(model, keyvision.ImageSequences.from_frames(frames)).x, dtype=float
-    )
-    dynamics = jax.tree.map(lambda a: a.astype(jnp.float64) if eqx.is_inexact_array(a) else a, model.dynamics)
-    structure = keyvision.joint_structure(dynamics.constraint, x, JOINTS)
-    runs, samples, k = x.shape
-    q = np.asarray(jax.vmap(structure.joint_map.inverse)(jnp.asarray(x.reshape(-1, k))))
-    return np.unwrap(q.reshape(runs, samples, -1), axis=1), dynamics, structure, x, frames
 
 
 def _aligned(q, reference):
@@ -107,31 +91,14 @@ def _balances(estimates, order: int) -> dict:
     import numpy as np
     from scipy.signal import savgol_filter
 
-    import cldyn
-    from keyvision._identify import actuator_gears, energy_scale, metres_per_unit
-
     q_all = [e["q"] for e in estimates]
     dynamics, structure, x, frames = (estimates[0][k] for k in ("dynamics", "structure", "x", "frames"))
-    runs, samples, k = x.shape
-    joules = energy_scale(
-        dynamics,
-        structure,
-        x.reshape(-1, k),
-        actuator_gears(frames.info["mjcf_xml"]),
-        metres_per_unit(frames.camera),
-    )["joules_per_unit"]
+    runs, samples, _ = x.shape
+    joules = _joules(dynamics, structure, x, frames)
     controls = jnp.asarray(np.asarray(frames.u, dtype=float).reshape(-1, frames.u.shape[-1]))
     tangent = jax.vmap(lambda a, b: jax.jvp(structure.joint_map.forward, (a,), (b,)))
-
-    def polarised(p, a, b, c):
-        # V + a^T M b / 2 (E(p, a + b) - E(p, a - b) = 2 a^T M b), and the work with the mean velocity
-        kinetic = (dynamics.energy(p, a + b) - dynamics.energy(p, a - b)) / 4
-        return dynamics.energy(p, jnp.zeros_like(a)) + kinetic, (a + b) / 2 @ (dynamics.input_matrix(p) @ c)
-
-    energy_and_power = jax.jit(jax.vmap(polarised))
-    choice = cldyn.Smoothing().choose(x, frames.dt)
-    filters = {f"w = {w}": (w, 3) for w in WINDOWS}
-    filters[f"w = {choice.window}, degree {choice.order} (identify's choice)"] = (choice.window, choice.order)
+    energy_and_power = _polarised(dynamics)
+    filters = _filters(x, frames.dt, WINDOWS)
     fits = {}
     for label, (window, degree) in filters.items():
         smooth = [savgol_filter(q, window, degree, axis=1) for q in q_all]
@@ -236,7 +203,7 @@ def main() -> None:
         true_q = np.asarray(rendered.extras["qpos"], dtype=float)
         estimates = []
         for model, spec in loaded:
-            q, dynamics, structure, x, frames = _joints(model, spec, rendered)
+            q, dynamics, structure, x, frames = _estimated_joints(model, spec, rendered)
             error, rest = _errors(_aligned(q, true_q), true_q, args.warp_order)
             if estimates:  # B's and C's velocities in A's conventions; A's angles stay its joint map's
                 q = _aligned(q, estimates[0]["q"])
