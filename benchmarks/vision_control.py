@@ -99,23 +99,18 @@ def _si_factor(model, scene: str, poses: int = 200, seed: int = 0) -> dict:
     from keyvision._render import _scene_xml
 
     _, setup = _control._model_scene(model, scene, "fixed", "si")
-    physics, rng = setup.model, np.random.default_rng(seed)
+    physics, view = setup.model, PlanarCamera(setup.homography, setup.basis)
     data, renderer = mujoco.MjData(physics), mujoco.Renderer(physics, model.image_size, model.image_size)
-    frames = []
-    for _ in range(poses):
-        for j in range(physics.njnt):
-            adr = physics.jnt_qposadr[j]
-            hinge = physics.jnt_type[j] == mujoco.mjtJoint.mjJNT_HINGE
-            data.qpos[adr] = rng.uniform(-np.pi, np.pi) if hinge else physics.qpos0[adr] + rng.uniform(-1, 1)
-        mujoco.mj_forward(physics, data)
-        renderer.update_scene(data, camera=setup.camera)
-        frames.append(renderer.render().copy())
-    renderer.close()
-    x = np.asarray(_control.encode_batch(model, np.stack(frames)), np.float64)
+    try:
+        rng = np.random.default_rng(seed)
+        _, frames = _control._pose_frames(mujoco, setup, data, renderer, view, rng, poses)
+    finally:
+        renderer.close()
+    x = np.asarray(_control.encode_batch(model, frames), np.float64)
     dynamics = jax.tree.map(lambda a: a.astype(jnp.float64) if eqx.is_inexact_array(a) else a, model.dynamics)
     names = [mujoco.mj_id2name(physics, mujoco.mjtObj.mjOBJ_JOINT, j) for j in range(physics.njnt)]
     structure = joint_structure(dynamics.constraint, x, names)
-    metres = metres_per_unit(PlanarCamera(setup.homography, setup.basis))
+    metres = metres_per_unit(view)
     scale = energy_scale(dynamics, structure, x, actuator_gears(_scene_xml(scene)), metres)
     return {
         "factor": metres**2 / scale["joules_per_unit"],

@@ -364,11 +364,8 @@ def swing_up(
                         frames.append(frame.copy())
                 else:
                     x, xd = _model_state(mujoco, setup, data, view, calibration)
-                    u = np.asarray(
-                        _state_step(
-                            policy, jnp.asarray(x, policy.target.dtype), jnp.asarray(xd, policy.target.dtype)
-                        )
-                    )
+                    dtype = policy.target.dtype
+                    u = np.asarray(_state_step(policy, jnp.asarray(x, dtype), jnp.asarray(xd, dtype)))
                 policy_seconds += time.perf_counter() - started
                 out["u"][r, s], out["x"][r, s], out["xd"][r, s] = u, x, xd
                 data.ctrl[:] = u
@@ -570,6 +567,16 @@ def _calibrate(mujoco, scene, data, renderer, model, view, rng, poses: int = 200
     model's estimated ones, least squares over frames of random poses: the learnt keypoints are the
     estimator's, which may sit elsewhere on the body than the scene's (on the pendulum, partway along
     the rod), and the state variant of `swing_up` must speak the model's coordinates."""
+    truths, frames = _pose_frames(mujoco, scene, data, renderer, view, rng, poses)
+    estimated = np.asarray(encode_batch(model, frames))
+    design = np.concatenate([truths, np.ones((poses, 1))], axis=1)
+    solution, *_ = np.linalg.lstsq(design, estimated, rcond=None)
+    return solution[:-1].T, solution[-1]
+
+
+def _pose_frames(mujoco, scene, data, renderer, view, rng, poses: int) -> tuple[np.ndarray, np.ndarray]:
+    """`(truths, frames)` of `poses` random poses (hinges uniform on the circle, slides within 1 of
+    their reference): the true keypoints in the image frame `(poses, 2K)` and the rendered frames."""
     physics = scene.model
     truths, frames = [], []
     for _ in range(poses):
@@ -583,11 +590,7 @@ def _calibrate(mujoco, scene, data, renderer, model, view, rng, poses: int = 200
         truths.append(view.to_image(_true_keypoints(scene, data)).reshape(-1))
         renderer.update_scene(data, camera=scene.camera)
         frames.append(renderer.render().copy())
-    estimated = np.asarray(encode_batch(model, np.stack(frames)))
-    truths = np.stack(truths)
-    design = np.concatenate([truths, np.ones((poses, 1))], axis=1)
-    solution, *_ = np.linalg.lstsq(design, estimated, rcond=None)
-    return solution[:-1].T, solution[-1]
+    return np.stack(truths), np.stack(frames)
 
 
 def _point_velocity(mujoco, model, data, point) -> np.ndarray:
