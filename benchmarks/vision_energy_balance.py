@@ -87,6 +87,17 @@ def _fourier(q, order: int):
     return np.stack(columns, -1)
 
 
+def _high_order(error, truth, order: int) -> tuple:
+    """`(rest, warp)`: the joint-angle errors `error` `(runs, samples, J)` split into a Fourier series of
+    `order` in the true angles `truth` (the smooth warp, least squares per joint) and what it leaves."""
+    import numpy as np
+
+    basis = _fourier(truth.reshape(-1, truth.shape[-1]), order)
+    coefficients, *_ = np.linalg.lstsq(basis, error.reshape(-1, error.shape[-1]), rcond=None)
+    warp = (basis @ coefficients).reshape(error.shape)
+    return error - warp, warp
+
+
 def _cumulative(f, dt: float):
     """`int_0^t f` at every sample, along axis 1, of the cubic spline through the samples."""
     import numpy as np
@@ -390,26 +401,27 @@ def _estimator_error(q, truth) -> tuple:
     also that function (the warp, added to MuJoCo's angles) and the RMS of the rest per joint."""
     import numpy as np
 
-    out, warp, rest_rms = {}, np.zeros_like(truth), []
-    for j, name in enumerate(JOINTS):
+    signs, errors = [], []
+    for j in range(len(JOINTS)):
         best = None
         for sign in (1, -1):
             d = q[..., j] - sign * truth[..., j]
             e = np.angle(np.exp(1j * (d - np.angle(np.exp(1j * d).mean()))))
             if best is None or np.abs(e).mean() < np.abs(best[1]).mean():
                 best = (sign, e)
-        sign, e = best
-        columns = _fourier(sign * truth, 4)
-        columns = columns.reshape(-1, columns.shape[-1])
-        coefficients, *_ = np.linalg.lstsq(columns, e.reshape(-1), rcond=None)
-        rest = e.reshape(-1) - columns @ coefficients
-        out[name] = {
-            "rms_rad": float(np.sqrt((e**2).mean())),
-            "not_a_function_of_pose_rms_rad": float(rest.std()),
+        signs.append(best[0])
+        errors.append(best[1])
+    error = np.stack(errors, -1)
+    rest, warp = _high_order(error, truth, 4)
+    rest_rms = rest.reshape(-1, rest.shape[-1]).std(axis=0)
+    out = {
+        name: {
+            "rms_rad": float(np.sqrt((error[..., j] ** 2).mean())),
+            "not_a_function_of_pose_rms_rad": float(rest_rms[j]),
         }
-        warp[..., j] = sign * (columns @ coefficients).reshape(e.shape)  # in MuJoCo's sense of the angle
-        rest_rms.append(rest.std())
-    return out, warp, np.array(rest_rms)
+        for j, name in enumerate(JOINTS)
+    }
+    return out, warp * np.array(signs), rest_rms  # the warp in MuJoCo's sense of each angle
 
 
 def _row(data: str, source: str, fit: dict) -> str:

@@ -43,7 +43,7 @@ from vision_energy_balance import (  # noqa: E402
     SOURCES,
     _estimated_joints,
     _filters,
-    _fourier,
+    _high_order,
     _joules,
     _polarised,
     balance,
@@ -76,12 +76,7 @@ def _errors(q, truth, order: int):
 
     error = np.angle(np.exp(1j * (q - truth)))
     error = np.angle(np.exp(1j * (error - np.angle(np.exp(1j * error).mean(axis=(0, 1))))))
-    basis = _fourier(truth.reshape(-1, truth.shape[-1]), order)
-    rest = np.empty_like(error)
-    for j in range(error.shape[-1]):
-        coefficients, *_ = np.linalg.lstsq(basis, error[..., j].ravel(), rcond=None)
-        rest[..., j] = (error[..., j].ravel() - basis @ coefficients).reshape(error.shape[:2])
-    return error, rest
+    return error, _high_order(error, truth, order)[0]
 
 
 def _balances(estimates, order: int) -> dict:
