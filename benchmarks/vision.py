@@ -32,12 +32,15 @@ sys.path.insert(0, str(ROOT / "benchmarks"))
 from _common import RESULTS, machine, write  # noqa: E402
 
 PAPER_VPT = {"pendulum": 0.38, "cartpole": 1.00, "acrobot": 1.00}  # Table 1, KeyCLD
+INTERRUPTED = 130  # the exit status of a `keyvision` command stopped by SIGINT (128 + 2), checkpointed
 
 
 def _cli(*argv) -> None:
     from keyvision._cli import main
 
     status = main([str(a) for a in argv])
+    if status == INTERRUPTED:  # Ctrl-C: the benchmark stops too (not a failed step to record)
+        raise KeyboardInterrupt
     if status != 0:
         raise SystemExit(f"keyvision {argv[0]} failed with status {status}")
 
@@ -68,11 +71,17 @@ def add_recipe(parser: argparse.ArgumentParser, **defaults) -> None:
     """Add the recipe's options to a benchmark's parser (`defaults` overrides some of its values)."""
     for name, (kind, default) in RECIPE.items():
         parser.add_argument(f"--{name.replace('_', '-')}", type=kind, default=defaults.get(name, default))
+    parser.add_argument(
+        "--augment",
+        action="store_true",
+        help="train the estimator on frames turned and mirrored at random (`keyvision train --augment`)",
+    )
 
 
 def recipe_options(args) -> list:
     """The recipe's options as `keyvision train` arguments."""
-    return [item for name in RECIPE for item in (f"--{name.replace('_', '-')}", getattr(args, name))]
+    options = [item for name in RECIPE for item in (f"--{name.replace('_', '-')}", getattr(args, name))]
+    return options + (["--augment"] if getattr(args, "augment", False) else [])
 
 
 def _images_per_second(stages: dict, schedule: dict) -> float | None:

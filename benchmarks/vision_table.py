@@ -21,12 +21,15 @@ time of its training process. Writes benchmarks/results/vision_table.{json,md}
 (the paper's Table 1 layout: VPT mean +- std over the validation runs and the median, KeyCLD's seeds
 pooled, the paper's values beside), vision_table_mse_<scene>.png (Fig. 3: MSE over time, quartile
 bands, the threshold dashed) and vision_table_frames_<scene>.png (Figs. 4, 13-15: every fourth frame of
-one validation run, true and as each model predicts it); prints the JSON.
+one validation run, true and as each model predicts it); prints the JSON. With `--augment` (every
+model's estimator trained on frames turned and mirrored at random) the same table is a table of its own:
+its models in `runs/bench-vision-table-augmented`, its results in vision_table_augmented*.
 
     python benchmarks/vision_table.py --scenes pendulum --rounds 1   # the CPU budget of the table
     python benchmarks/vision_table.py --scenes pendulum --models KeyCLD NODE2   # some rows only
     python benchmarks/vision_table.py --report     # the table of what has finished, training nothing
     python benchmarks/vision_table.py --seeds 3 --ablation-seeds 3 --jobs 6   # on one GPU
+    python benchmarks/vision_table.py --augment --seeds 3 --ablation-seeds 3 --jobs 6   # augmented
 """
 
 import argparse
@@ -47,7 +50,7 @@ import numpy as np  # noqa: E402
 ROOT = pathlib.Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "benchmarks"))
 from _common import RESULTS, machine, write  # noqa: E402
-from vision import _cli, add_recipe, recipe_options  # noqa: E402
+from vision import INTERRUPTED, _cli, add_recipe, recipe_options  # noqa: E402
 
 # Table 1 of the paper (VPT)
 PAPER = {
@@ -193,6 +196,11 @@ def _train_concurrently(trainings: list, jobs: int, device: str) -> None:
                     continue
                 del running[model]
                 seconds, status = time.perf_counter() - started, process.returncode
+                if status in (INTERRUPTED, -signal.SIGINT):  # not a result: stop, resumable
+                    raise SystemExit(
+                        f"vision_table: {model} was interrupted (its checkpoints kept; the same "
+                        "command resumes it)"
+                    )
                 if status != 0 and not _record_stop(model, log.read_text(), f"status {status}"):
                     raise SystemExit(f"keyvision train failed for {model} (status {status}): see {log}")
                 _record_device(model, device, jobs, seconds)
@@ -283,7 +291,9 @@ def _plot_frames(path: pathlib.Path, data: pathlib.Path, models: dict, run: int 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--scenes", nargs="+", default=["pendulum", "cartpole", "acrobot"])
-    parser.add_argument("--out", default=str(ROOT / "runs" / "bench-vision-table"))
+    parser.add_argument(
+        "--out", default=None, help="the models (default: runs/bench-vision-table, -augmented with --augment)"
+    )
     parser.add_argument("--runs", type=int, default=500)
     parser.add_argument(
         "--seeds", type=int, default=1, help="KeyCLD's seeds (3 in the issue, where time allows)"
@@ -318,6 +328,14 @@ def main() -> None:
     args = parser.parse_args()
     if args.jobs < 1:
         parser.error(f"--jobs {args.jobs}: give at least 1")
+    # `kill -INT` stops the table and its trainings, checkpointed (`keyvision train` stops so on
+    # KeyboardInterrupt), even where a shell without job control (`nohup ... &` in a script) started
+    # it ignoring SIGINT, which its trainings would inherit: a caught signal is reset to its default in
+    # a new program, an ignored one stays ignored
+    signal.signal(signal.SIGINT, signal.default_int_handler)
+    if args.out is None:
+        args.out = str(ROOT / "runs" / ("bench-vision-table" + ("-augmented" if args.augment else "")))
+    results = _name(args)
     import jax
 
     started = time.perf_counter()
@@ -348,8 +366,8 @@ def main() -> None:
                 rows[name], models[name] = _summary(runs), row[0][0]
         if not rows:
             continue
-        _plot_mse(RESULTS / f"vision_table_mse_{scene}.png", scene, rows)
-        _plot_frames(RESULTS / f"vision_table_frames_{scene}.png", data, models)
+        _plot_mse(RESULTS / f"{results}_mse_{scene}.png", scene, rows)
+        _plot_frames(RESULTS / f"{results}_frames_{scene}.png", data, models)
         scenes[scene] = rows
         # written after every scene: a call cut short leaves the table of the scenes it finished
         _write(scenes, args, device, time.perf_counter() - started)
@@ -382,6 +400,11 @@ def _plan(args, out: pathlib.Path) -> dict:
     return rows
 
 
+def _name(args) -> str:
+    """The results' name: vision_table, or vision_table_augmented for the table trained with `--augment`."""
+    return "vision_table_augmented" if args.augment else "vision_table"
+
+
 def _finished(model: pathlib.Path) -> bool:
     return _trained(model) and (model.parent / f"{model.name}-evaluate" / "vpt.json").is_file()
 
@@ -409,7 +432,7 @@ def _seed_of(stop: dict) -> str:
 
 
 def _write(scenes: dict, args, device: str, seconds: float) -> None:
-    """benchmarks/results/vision_table.{json,md} from the rows of the scenes done."""
+    """benchmarks/results/vision_table{,_augmented}.{json,md} from the rows of the scenes done."""
     result = {
         "machine": machine(),
         "device": device,
@@ -428,7 +451,8 @@ def _write(scenes: dict, args, device: str, seconds: float) -> None:
     first = next(iter(scenes.values()))
     runs = first["KeyCLD"]["runs"] if "KeyCLD" in first else next(iter(first.values()))["runs"]
     lines = [
-        "# The paper's ablation study from images (Table 1)",
+        "# The paper's ablation study from images (Table 1)"
+        + (", every estimator trained with `--augment`" if args.augment else ""),
         "",
         f"VPT over the {runs} validation runs, mean +- std (median); the paper's value in brackets; - where "
         f"not run yet. Seeds: {_seed_counts(scenes)}; a row of several seeds pools their runs, and its "
@@ -490,7 +514,7 @@ def _write(scenes: dict, args, device: str, seconds: float) -> None:
     ]
     if stops:
         lines += ["", "\\* The training stopped before its end:", "", *stops]
-    write("vision_table", result, "\n".join(lines) + "\n")
+    write(_name(args), result, "\n".join(lines) + "\n")
 
 
 if __name__ == "__main__":
