@@ -32,10 +32,10 @@ sys.path.insert(0, str(ROOT / "benchmarks"))
 from _common import RESULTS, machine, write  # noqa: E402
 
 PAPER_VPT = {"pendulum": 0.38, "cartpole": 1.00, "acrobot": 1.00}  # Table 1, KeyCLD
-INTERRUPTED = 130  # the exit status of a `keyvision` command stopped by SIGINT (128 + 2), checkpointed
 
 
 def _cli(*argv) -> None:
+    from cldyn._cli._common import INTERRUPTED  # a command's exit status when stopped by SIGINT
     from keyvision._cli import main
 
     status = main([str(a) for a in argv])

@@ -50,7 +50,7 @@ import numpy as np  # noqa: E402
 ROOT = pathlib.Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "benchmarks"))
 from _common import RESULTS, machine, write  # noqa: E402
-from vision import INTERRUPTED, _cli, add_recipe, recipe_options  # noqa: E402
+from vision import _cli, add_recipe, recipe_options  # noqa: E402
 
 # Table 1 of the paper (VPT)
 PAPER = {
@@ -177,6 +177,8 @@ def _train_concurrently(trainings: list, jobs: int, device: str) -> None:
     to `jobs` `keyvision train` processes at once, each writing `<model>-train.log`; a training that
     starts from another's autoencoder waits until that stage is over. A training that fails with no
     stage finished interrupts the others (each keeps its checkpoints) and ends the call."""
+    from cldyn._cli._common import INTERRUPTED  # a training's exit status when stopped by SIGINT
+
     pending = [t for t in trainings if not _trained(t[0])]
     running: dict = {}
     try:
