@@ -15,12 +15,18 @@ Writes benchmarks/results/vision_control.json and .md, and a plot per model (bel
     python benchmarks/vision_control.py --metric mass     # gains as rates (cldyn.EnergyShaping)
     python benchmarks/vision_control.py --metric mass --trim   # minus the command at the target
     python benchmarks/vision_control.py --units si        # eq. 32's gains in SI units (camera, gears)
+    python benchmarks/vision_control.py --model acrobot=DIR --supersample 4   # another camera (below)
     python benchmarks/vision_control.py --report          # the table again from the saved rows
     python benchmarks/vision_control.py --model acrobot=DIR --linearise   # the true loop at the target only
 
-Rows are kept per scene, model directory, metric, trim and units: another model of a scene adds rows
-beside the others (the table names each by its directory), and its plot is
-vision_control_<directory>.png with `_mass` for that metric, `_trim` for the trim and `_si` for SI units.
+Rows are kept per scene, model directory, metric, trim, units and camera: another model of a scene adds
+rows beside the others (the table names each by its directory), and its plot is
+vision_control_<directory>.png with `_mass` for that metric, `_trim` for the trim, `_si` for SI units and
+`_camera<N>` for a supersampled camera.
+
+The camera renders frames as the model's training frames were rendered (`keyvision.RenderProtocol`'s
+`supersample`, kept in the model's `keyvision.json`); `--supersample N` sets it: each pixel the mean of
+N x N samples of MuJoCo's render, as a camera's pixel integrates light over its area.
 
 `--metric mass` weighs the shaped potential and the damping by the learnt mass matrix: a Lagrangian
 learnt from images has an arbitrary scale, and eq. 32's gains act differently at each; with the mass
@@ -71,18 +77,20 @@ def _metric(row: dict) -> str:
     return row.get("metric", "euclidean")  # rows from before the metric option: eq. 32's
 
 
-def _variant(row: dict) -> tuple[str, bool, str]:
-    """The controller of a row: its metric, whether it trims (rows from before the trim: not), and the
-    units its gains are given in (rows from before `--units`: the model's)."""
-    return _metric(row), bool(row.get("trim", False)), row.get("units", "model")
+def _variant(row: dict) -> tuple[str, bool, str, int]:
+    """The controller of a row: its metric, whether it trims (rows from before the trim: not), the
+    units its gains are given in (rows from before `--units`: the model's), and the camera's samples
+    per pixel side (rows from before `--supersample`: 1, MuJoCo's render)."""
+    return _metric(row), bool(row.get("trim", False)), row.get("units", "model"), row.get("supersample", 1)
 
 
 def _label(row: dict) -> str:
     units = ", SI units" if row.get("units", "model") == "si" else ""
-    return _metric(row) + units + (" + trim" if row.get("trim") else "")
+    camera = f", camera {row['supersample']}x{row['supersample']}" if row.get("supersample", 1) > 1 else ""
+    return _metric(row) + units + camera + (" + trim" if row.get("trim") else "")
 
 
-def _si_factor(model, scene: str, poses: int = 200, seed: int = 0) -> dict:
+def _si_factor(model, scene: str, poses: int = 200, seed: int = 0, supersample: int = 1) -> dict:
     """The factor `s^2 / e` that turns eq. 32's gains given in SI units into the learnt model's units:
     `s` metres per unit of the image frame (the camera's scale), `e` joules per unit of the learnt
     energy (fixed by the actuators' gears, `keyvision.identify`'s conversion), evaluated on the
@@ -97,10 +105,11 @@ def _si_factor(model, scene: str, poses: int = 200, seed: int = 0) -> dict:
     from keyvision._data import PlanarCamera
     from keyvision._identify import actuator_gears, energy_scale, joint_structure, metres_per_unit
     from keyvision._render import _scene_xml
+    from keyvision._scene import _Camera
 
-    _, setup = _control._model_scene(model, scene, "fixed", "si")
+    protocol, setup = _control._model_scene(model, scene, "fixed", "si", supersample)
     physics, view = setup.model, PlanarCamera(setup.homography, setup.basis)
-    data, renderer = mujoco.MjData(physics), mujoco.Renderer(physics, model.image_size, model.image_size)
+    data, renderer = mujoco.MjData(physics), _Camera(mujoco, setup, protocol)
     try:
         rng = np.random.default_rng(seed)
         _, frames = _control._pose_frames(mujoco, setup, data, renderer, view, rng, poses)
@@ -119,6 +128,11 @@ def _si_factor(model, scene: str, poses: int = 200, seed: int = 0) -> dict:
         "joules_per_unit_by_joint": scale["per_joint"],
         "spread": scale["spread"],
     }
+
+
+def _supersample(args, spec: dict) -> int:
+    """The camera's samples per pixel side: `--supersample`, else those of the model's training frames."""
+    return args.supersample or int((spec.get("data") or {}).get("supersample", 1))
 
 
 def _kind(row: dict) -> str:
@@ -260,6 +274,12 @@ def main() -> None:
         "(with --metric euclidean; the mass metric does not depend on units)",
     )
     parser.add_argument(
+        "--supersample",
+        type=int,
+        help="the camera's samples per pixel side (keyvision.RenderProtocol); default: those of the frames "
+        "each model was trained on",
+    )
+    parser.add_argument(
         "--report", action="store_true", help="run nothing: rewrite the table from the saved rows"
     )
     parser.add_argument(
@@ -271,7 +291,8 @@ def main() -> None:
     args = parser.parse_args()
     if args.units == "si" and args.metric != "euclidean":
         parser.error("--units si goes with --metric euclidean (the mass metric does not depend on units)")
-    variant = (args.metric, args.trim, args.units)
+    if args.supersample is not None and args.supersample < 1:
+        parser.error(f"--supersample must be at least 1, got {args.supersample}")
     if args.report:
         import json
 
@@ -287,10 +308,20 @@ def main() -> None:
 
         rows = json.loads((RESULTS / "vision_control.json").read_text())["rows"]
         for name, directory in models.items():
-            model, _ = keyvision.load_model(directory)
-            factor = _si_factor(model, f"keycld/{name}")["factor"] if args.units == "si" else 1.0
+            model, spec = keyvision.load_model(directory)
+            samples = _supersample(args, spec)
+            variant = (args.metric, args.trim, args.units, samples)
+            factor = 1.0
+            if args.units == "si":
+                factor = _si_factor(model, f"keycld/{name}", supersample=samples)["factor"]
             truth = keyvision.target_linearisation(
-                model, f"keycld/{name}", kp=5.0 * factor, kd=2.0 * factor, metric=args.metric, trim=args.trim
+                model,
+                f"keycld/{name}",
+                kp=5.0 * factor,
+                kd=2.0 * factor,
+                metric=args.metric,
+                trim=args.trim,
+                supersample=samples,
             )
             print(name, directory, variant, truth, flush=True)
             key = (name, repo_path(directory), variant)
@@ -305,14 +336,16 @@ def main() -> None:
                 row["true_target"] = truth
         _write(rows)
         return
-    new = []
+    new, run = [], set()
     for name, directory in models.items():
         model, spec = keyvision.load_model(directory)
         kind = spec["dynamics"]["kind"]
-        si = _si_factor(model, f"keycld/{name}") if args.units == "si" else None
+        samples = _supersample(args, spec)
+        run.add((name, repo_path(directory), (args.metric, args.trim, args.units, samples)))
+        si = _si_factor(model, f"keycld/{name}", supersample=samples) if args.units == "si" else None
         kp, kd = (5.0, 2.0) if si is None else (5.0 * si["factor"], 2.0 * si["factor"])
         truth = keyvision.target_linearisation(
-            model, f"keycld/{name}", kp=kp, kd=kd, metric=args.metric, trim=args.trim
+            model, f"keycld/{name}", kp=kp, kd=kd, metric=args.metric, trim=args.trim, supersample=samples
         )
         results = []
         for observe in ("frames", "state"):
@@ -327,6 +360,7 @@ def main() -> None:
                 runs=args.runs,
                 duration=args.duration,
                 seed=args.seed,
+                supersample=samples,
                 keep_frames=0,
                 progress_meter=cldyn.TqdmProgressMeter(),
             )
@@ -341,6 +375,7 @@ def main() -> None:
                     "metric": args.metric,
                     "trim": args.trim,
                     "units": args.units,
+                    "supersample": samples,
                     "gains_in_model_units": [kp, kd],
                     "si_conversion": si,
                     "slowest_mode": _slowest_mode(model, result["target_keypoints"], args.metric, kp, kd),
@@ -357,7 +392,7 @@ def main() -> None:
             )
             print(new[-1], flush=True)
         suffix = ("" if args.metric == "euclidean" else f"_{args.metric}") + ("_trim" if args.trim else "")
-        suffix += "_si" if args.units == "si" else ""
+        suffix += ("_si" if args.units == "si" else "") + (f"_camera{samples}" if samples > 1 else "")
         _plot(RESULTS / f"vision_control_{pathlib.Path(directory).name}{suffix}.png", results)
     # rows of the models and metrics not run this time are kept from the previous results (one scene
     # per call fits)
@@ -365,7 +400,6 @@ def main() -> None:
     if previous.is_file():
         import json
 
-        run = {(scene, repo_path(models[scene]), variant) for scene in models}
         rows = [
             r
             for r in json.loads(previous.read_text())["rows"]

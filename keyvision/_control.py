@@ -23,7 +23,7 @@ from ._data import PlanarCamera
 from ._evaluate import encode_batch
 from ._model import KeyCLD, parameter_dtype
 from ._render import RenderProtocol, _scene_xml
-from ._scene import _HINGE, _mujoco, _scene
+from ._scene import _HINGE, _Camera, _mujoco, _scene
 
 _SETTLE = 0.5  # seconds at the end of a run over which the target must hold
 _SHADOW_SIZE = 512
@@ -208,12 +208,12 @@ def _true_keypoints(scene, data) -> np.ndarray:
     return np.stack([scene.basis @ point.world(data) for point in scene.keypoints])
 
 
-def _model_scene(model: KeyCLD, scene, camera, caller: str):
+def _model_scene(model: KeyCLD, scene, camera, caller: str, supersample: int = 1):
     """`(protocol, scene)`: the render protocol at the model's image size and the scene seen by
     `camera`, refused if its keypoints are not the model's in number."""
     # a 512-texel shadow map renders the same pixels at 64 x 64 as the scenes' 2048 (a test checks)
     # in half the time
-    protocol = RenderProtocol(image_size=model.image_size, shadow_size=_SHADOW_SIZE)
+    protocol = RenderProtocol(image_size=model.image_size, shadow_size=_SHADOW_SIZE, supersample=supersample)
     setup = _scene(_scene_xml(scene), protocol, camera, None)
     if len(setup.keypoints) != model.num_keypoints:
         raise ValueError(
@@ -241,6 +241,7 @@ def swing_up(
     dt: float | None = None,
     physics_dt: float = 0.002,
     camera: str | int = "fixed",
+    supersample: int = 1,
     keep_frames: int = 1,
     progress_meter: cldyn.AbstractProgressMeter = cldyn.NoProgressMeter(),
 ) -> dict:
@@ -272,7 +273,8 @@ def swing_up(
     - `dt`: the control period; by default the frame interval of `keyvision.render`'s protocol for
       the scene (its timestep: 0.02 s for the pendulum, 0.01 s for the cart-pole and the acrobot).
     - `physics_dt`: MuJoCo's step; must divide `dt`.
-    - `camera`: the camera the model was trained with.
+    - `camera`, `supersample`: the camera the model was trained with, and the samples per pixel along
+      each side of its frames (`keyvision.RenderProtocol`; 1, MuJoCo's render, for the paper's frames).
     - `keep_frames`: how many runs keep their frames and estimated keypoints in the result (for GIFs).
     - `progress_meter`: reports the runs.
 
@@ -289,14 +291,13 @@ def swing_up(
     for name, value in (("duration", duration), ("tolerance", tolerance), ("physics_dt", physics_dt)):
         check_positive(name, value)
     mujoco = _mujoco()
-    protocol, setup = _model_scene(model, scene, camera, "swing_up")
+    protocol, setup = _model_scene(model, scene, camera, "swing_up", supersample)
     frame_dt = float(setup.model.opt.timestep) * protocol.steps_per_frame if dt is None else float(dt)
     substeps = int(round(frame_dt / physics_dt))
     if substeps < 1 or abs(substeps * physics_dt - frame_dt) > 1e-9 * frame_dt:
         raise ValueError(f"swing_up: physics_dt {physics_dt} must divide the control period {frame_dt}")
     view = PlanarCamera(setup.homography, setup.basis)
-    size = model.image_size
-    renderer = mujoco.Renderer(setup.model, size, size)
+    renderer = _Camera(mujoco, setup, protocol)
     try:
         data = mujoco.MjData(setup.model)
         hanging, upright = _postures(mujoco, setup, data, view)
@@ -304,8 +305,7 @@ def swing_up(
         data.qvel[:] = 0.0
         mujoco.mj_forward(setup.model, data)
         target_world = _true_keypoints(setup, data)
-        renderer.update_scene(data, camera=setup.camera)
-        target_frame = renderer.render().copy() if target is None else np.asarray(target)
+        target_frame = renderer.render(data) if target is None else np.asarray(target)
         rng = np.random.default_rng(seed)
         calibration, target_keypoints = None, target_frame
         if observe == "state":
@@ -352,8 +352,7 @@ def swing_up(
                 out["keypoints"][r, s] = true
                 started = time.perf_counter()
                 if observe == "frames":
-                    renderer.update_scene(data, camera=setup.camera)
-                    frame = renderer.render()
+                    frame = renderer.render(data)
                     render_seconds += time.perf_counter() - started
                     started = time.perf_counter()
                     if memory is None:
@@ -361,7 +360,7 @@ def swing_up(
                     u, memory, x, xd = _frame_step(policy, frame, memory)
                     u, x, xd = np.asarray(u), np.asarray(x), np.asarray(xd)
                     if r < keep_frames:
-                        frames.append(frame.copy())
+                        frames.append(frame)
                 else:
                     x, xd = _model_state(mujoco, setup, data, view, calibration)
                     dtype = policy.target.dtype
@@ -454,6 +453,7 @@ def target_linearisation(
     metric: str = "euclidean",
     trim: bool = False,
     camera: str | int = "fixed",
+    supersample: int = 1,
     step: float = 1e-4,
     seed: int = 0,
 ) -> dict:
@@ -472,8 +472,8 @@ def target_linearisation(
     exact masses, the shaped spring holds a learnt potential whose curvature along a mode is wrong
     by less than `kp / rate` of the truth: the fastest rate sets how exact a learnt potential must be.
 
-    **Arguments:** `model`, `scene`, `kp`, `kd`, `metric`, `trim` and `camera` as `swing_up`; `step`: the
-    finite-difference step; `seed`: the calibration's random poses.
+    **Arguments:** `model`, `scene`, `kp`, `kd`, `metric`, `trim`, `camera` and `supersample` as
+    `swing_up`; `step`: the finite-difference step; `seed`: the calibration's random poses.
 
     **Returns:** a dict: `eigenvalues` (of the true closed loop, complex, as `[real, imag]` pairs
     sorted by real part, largest first), `largest_real_part` (1/s; positive: unstable),
@@ -491,13 +491,12 @@ def target_linearisation(
     """
     check_positive("target_linearisation: step", step)
     mujoco = _mujoco()
-    protocol, setup = _model_scene(model, scene, camera, "target_linearisation")
+    protocol, setup = _model_scene(model, scene, camera, "target_linearisation", supersample)
     physics = setup.model
     if physics.nq != physics.nv:
         raise ValueError("target_linearisation: needs a scene of hinges and slides (nq == nv)")
     view = PlanarCamera(setup.homography, setup.basis)
-    size = model.image_size
-    renderer = mujoco.Renderer(physics, size, size)
+    renderer = _Camera(mujoco, setup, protocol)
     try:
         data = mujoco.MjData(physics)
         _, upright = _postures(mujoco, setup, data, view)
@@ -588,8 +587,7 @@ def _pose_frames(mujoco, scene, data, renderer, view, rng, poses: int) -> tuple[
                 data.qpos[adr] = physics.qpos0[adr] + rng.uniform(-1.0, 1.0)
         mujoco.mj_forward(physics, data)
         truths.append(view.to_image(_true_keypoints(scene, data)).reshape(-1))
-        renderer.update_scene(data, camera=scene.camera)
-        frames.append(renderer.render().copy())
+        frames.append(renderer.render(data))
     return np.stack(truths), np.stack(frames)
 
 

@@ -26,7 +26,7 @@ import cldyn
 from cldyn._misc import check_fraction, check_positive, optional_import
 
 from ._data import SCHEMA, Frames, PlanarCamera, cache_directory, cache_key
-from ._scene import _HINGE, _JOINT_TYPES, _mujoco, _name, _Scene, _scene
+from ._scene import _HINGE, _JOINT_TYPES, _Camera, _mujoco, _name, _Scene, _scene
 
 
 @dataclasses.dataclass(frozen=True)
@@ -51,6 +51,11 @@ class RenderProtocol:
       scenes). 512 renders KeyCLD's scenes at 64 x 64 three to four times faster, but not
       pixel-identically (about one pixel in 10^4 differs, on shadow edges), so the default keeps
       the scene's.
+    - `supersample`: each pixel is the mean of `s x s` samples of MuJoCo's render at `s` times the
+      size (a camera's pixel integrates light over its area), rounded to 8 bits. 1 (the paper's
+      frames) is MuJoCo's render itself, which samples each pixel at 4 points: the edge of a link one
+      or two pixels wide then moves the frame in quarter-coverage steps, and an estimator's reading of
+      a small turn steps with it (`docs/acrobot_from_frames.md`).
 
     !!! example
 
@@ -71,6 +76,7 @@ class RenderProtocol:
     velocity_limit: float = 0.1
     steps_per_frame: int = 1
     shadow_size: int | None = None
+    supersample: int = 1
 
     def __post_init__(self):
         check_positive("RenderProtocol: runs", self.runs, integer=True)
@@ -92,6 +98,7 @@ class RenderProtocol:
         check_positive("RenderProtocol: steps_per_frame", self.steps_per_frame, integer=True)
         if self.shadow_size is not None:
             check_positive("RenderProtocol: shadow_size", self.shadow_size, integer=True)
+        check_positive("RenderProtocol: supersample", self.supersample, integer=True)
 
 
 # -- random initial states and controls -------------------------------------------------------------
@@ -135,8 +142,7 @@ def _start_worker(setup: dict) -> None:
     os.environ.setdefault("MUJOCO_GL", setup["gl"])
     mujoco = _mujoco()
     scene = _scene(setup["xml"], setup["protocol"], setup["camera"], setup["keypoints"])
-    size = setup["protocol"].image_size
-    renderer = mujoco.Renderer(scene.model, size, size)
+    renderer = _Camera(mujoco, scene, setup["protocol"])
     # Close the GL context before the interpreter tears the module down (else its finaliser fails).
     multiprocessing.util.Finalize(renderer, renderer.close, exitpriority=10)
     _WORKER.update(mujoco=mujoco, scene=scene, renderer=renderer, data=mujoco.MjData(scene.model))
@@ -160,8 +166,7 @@ def _simulate_and_render(scene: _Scene, renderer, data, mujoco, qpos0, qvel0, ct
         out["qpos"][t] = data.qpos
         out["qvel"][t] = data.qvel
         out["keypoints"][t] = np.concatenate([scene.basis @ point.world(data) for point in scene.keypoints])
-        renderer.update_scene(data, camera=scene.camera)
-        out["frames"][t] = renderer.render()
+        out["frames"][t] = renderer.render(data)
         if t + 1 < count:
             for _ in range(protocol.steps_per_frame):
                 mujoco.mj_step(model, data)
@@ -272,7 +277,7 @@ def render(
         "schema": SCHEMA,
         "xml": xml,
         "camera": camera,
-        "protocol": dataclasses.asdict(protocol),
+        "protocol": _protocol_fields(protocol),
         "seed": int(seed),
         "keypoints": keypoints,
         "mujoco": mujoco.__version__,
@@ -300,6 +305,15 @@ def render(
     if path is not None:
         frames.save(path)
     return frames
+
+
+def _protocol_fields(protocol: RenderProtocol) -> dict:
+    """The protocol as its cache key and the frames' info hold it: fields added to `RenderProtocol`
+    after caches were written are left out at their default, so those caches keep their keys."""
+    fields = dataclasses.asdict(protocol)
+    if protocol.supersample == 1:
+        del fields["supersample"]
+    return fields
 
 
 def _load_cached(path: pathlib.Path, key: str) -> Frames:
@@ -373,7 +387,7 @@ def _render(setup: dict, seed: int, workers: int | None, progress_meter) -> Fram
     integrator = mujoco.mjtIntegrator(int(model.opt.integrator)).name.removeprefix("mjINT_")
     info = {
         "mjcf_xml": setup["xml"],
-        "protocol": dataclasses.asdict(protocol),
+        "protocol": _protocol_fields(protocol),
         "keypoint_names": [point.name for point in scene.keypoints],
         "joint_names": [
             _name(mujoco, model, mujoco.mjtObj.mjOBJ_JOINT, j, "joint") for j in range(model.njnt)
@@ -405,6 +419,7 @@ def render_poses(
     camera: str | int = "fixed",
     image_size: int = 64,
     keypoints: Sequence[str] | None = None,
+    supersample: int = 1,
 ) -> dict[str, np.ndarray]:
     """Render a scene in given joint positions, with MuJoCo's potential energy of each pose.
 
@@ -419,6 +434,7 @@ def render_poses(
     - `qpos`: `(N, nq)` joint positions, MuJoCo's `qpos` layout.
     - `camera`, `keypoints`: as in `keyvision.render`.
     - `image_size`: the side of the square frames in pixels.
+    - `supersample`: samples per pixel along each side (`keyvision.RenderProtocol`).
 
     **Returns:** a dict with `frames` `(N, H, W, 3)` uint8, `keypoints` `(N, 2K)` the ground-truth
     keypoints in metres in the plane of motion (as `keyvision.render` stores them) and `potential`
@@ -435,7 +451,9 @@ def render_poses(
     if keypoints is not None:
         keypoints = (keypoints,) if isinstance(keypoints, str) else tuple(keypoints)
     mujoco = _mujoco()
-    protocol = RenderProtocol(runs=1, frames=1, validation_runs=0, image_size=image_size)
+    protocol = RenderProtocol(
+        runs=1, frames=1, validation_runs=0, image_size=image_size, supersample=supersample
+    )
     setup = _scene(_scene_xml(scene), protocol, camera, keypoints)
     model = setup.model
     qpos = np.asarray(qpos, dtype=float)
@@ -445,7 +463,7 @@ def render_poses(
         raise ValueError("render_poses: qpos has NaN or infinite entries")
     model.opt.enableflags |= int(mujoco.mjtEnableBit.mjENBL_ENERGY)
     data = mujoco.MjData(model)
-    renderer = mujoco.Renderer(model, image_size, image_size)
+    renderer = _Camera(mujoco, setup, protocol)
     out = {
         "frames": np.zeros((len(qpos), image_size, image_size, 3), np.uint8),
         "keypoints": np.zeros((len(qpos), 2 * len(setup.keypoints))),
@@ -459,8 +477,7 @@ def render_poses(
             out["potential"][i] = data.energy[0]
             points = [setup.basis @ point.world(data) for point in setup.keypoints]
             out["keypoints"][i] = np.concatenate(points)
-            renderer.update_scene(data, camera=setup.camera)
-            out["frames"][i] = renderer.render()
+            out["frames"][i] = renderer.render(data)
     finally:
         renderer.close()
     return out

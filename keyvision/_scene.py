@@ -202,6 +202,29 @@ class _Scene:
     homography: np.ndarray
 
 
+class _Camera:
+    """The scene's camera as `protocol` says: frames of `image_size` pixels, each the mean of
+    `supersample` x `supersample` samples of MuJoCo's render at that many times the size, rounded
+    to 8 bits (`supersample=1`: MuJoCo's render itself)."""
+
+    def __init__(self, mujoco, scene: _Scene, protocol: "RenderProtocol"):
+        self.size, self.supersample, self.camera = protocol.image_size, protocol.supersample, scene.camera
+        side = self.size * self.supersample
+        self._renderer = mujoco.Renderer(scene.model, side, side)
+
+    def render(self, data) -> np.ndarray:
+        """The frame `(size, size, 3)` uint8 of `data` (after `mj_forward`), a new array."""
+        self._renderer.update_scene(data, camera=self.camera)
+        image = self._renderer.render()
+        if self.supersample == 1:
+            return image.copy()
+        blocks = image.reshape(self.size, self.supersample, self.size, self.supersample, 3)
+        return np.round(blocks.mean(axis=(1, 3))).astype(np.uint8)
+
+    def close(self) -> None:
+        self._renderer.close()
+
+
 def _scene(xml: str, protocol: "RenderProtocol", camera: str | int, keypoints) -> _Scene:
     mujoco = _mujoco()
     try:
@@ -210,7 +233,7 @@ def _scene(xml: str, protocol: "RenderProtocol", camera: str | int, keypoints) -
         raise ValueError(f"MuJoCo could not compile the scene: {error}") from error
     if protocol.shadow_size is not None:
         model.vis.quality.shadowsize = protocol.shadow_size
-    size = protocol.image_size
+    size = protocol.image_size * protocol.supersample
     model.vis.global_.offwidth = max(int(model.vis.global_.offwidth), size)
     model.vis.global_.offheight = max(int(model.vis.global_.offheight), size)
     index = _camera(mujoco, model, camera)

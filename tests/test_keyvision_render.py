@@ -113,6 +113,26 @@ def test_render_poses_draws_the_poses_with_their_potential_energy(marker_frames)
         keyvision.render_poses(MARKER_SCENE, np.full((1, 2), np.nan), camera="oblique")
 
 
+def test_a_supersampled_camera_averages_each_pixels_samples(marker_frames):
+    """With `supersample=4` a pixel is the mean of the 4 x 4 pixels of MuJoCo's render at four times
+    the size, rounded: the 16-pixel frames are the 64-pixel frames averaged in blocks (a camera's pixel
+    integrates light over its area), and the marker's light is the same in both."""
+    qpos = marker_frames.extras["qpos"].reshape(-1, 2)
+    options = {"camera": "oblique", "keypoints": ["marker"]}
+    small = keyvision.render_poses(MARKER_SCENE, qpos, image_size=16, supersample=4, **options)["frames"]
+    large = marker_frames.frames.reshape(-1, 64, 64, 3).astype(float)
+    blocks = large.reshape(-1, 16, 4, 16, 4, 3).mean(axis=(2, 4))
+    assert small.dtype == np.uint8 and small.shape == (len(qpos), 16, 16, 3)
+    np.testing.assert_array_equal(small, np.round(blocks))
+    assert np.all(large.sum(axis=(1, 2, 3)) > 100)  # the marker is in every frame
+    light, rounding = large.sum(axis=(1, 2, 3)) / 16, 16 * 16 * 3 / 2  # half a level per pixel value
+    np.testing.assert_allclose(small.sum(axis=(1, 2, 3)), light, atol=rounding)
+    with pytest.raises(ValueError, match="supersample"):
+        keyvision.RenderProtocol(supersample=0)
+    # at its default the field is left out of the request, so caches written before it keep their keys
+    assert "supersample" not in marker_frames.info["protocol"]
+
+
 def test_keycld_pendulum_follows_the_papers_protocol():
     """A.6: dt 0.02 s with (semi-implicit) Euler, one step per frame; the pivot at the image centre;
     one constant control per run in U(-2, 2), zero in 20% of runs; velocities U(-0.1, 0.1)."""
@@ -180,9 +200,15 @@ def test_cache_is_reused_and_keyed_by_the_request(tmp_path, monkeypatch):
     np.testing.assert_array_equal(again.frames, first.frames)
     assert again.info["cache_key"] == first.info["cache_key"]
     monkeypatch.setattr(render_module, "_render", _fake_frames)
-    for change in ({"seed": 4}, {"protocol": dataclasses.replace(SMALL, frames=5)}, {"camera": "follow"}):
+    changes = (
+        {"seed": 4},
+        {"protocol": dataclasses.replace(SMALL, frames=5)},
+        {"protocol": dataclasses.replace(SMALL, supersample=2)},
+        {"camera": "follow"},
+    )
+    for change in changes:
         keyvision.render(MARKER_SCENE, **{"protocol": SMALL, "seed": 3, **change}, cache=tmp_path)
-    assert len(list(tmp_path.glob("*.npz"))) == 4
+    assert len(list(tmp_path.glob("*.npz"))) == 5
 
 
 def test_mismatched_cache_is_refused_naming_the_file(tmp_path, monkeypatch):

@@ -61,6 +61,12 @@ def register(subparsers) -> None:
         help="subtract the controller's command at the target at rest (not part of eq. 32: for a target "
         "that is an equilibrium, it removes the rest offset of a learnt potential's error there)",
     )
+    parser.add_argument(
+        "--supersample",
+        type=positive(integer=True),
+        help="the camera's samples per pixel side (default: those of the frames the model was trained on; "
+        "see keyvision.RenderProtocol)",
+    )
     parser.add_argument("--tolerance", type=positive(), default=0.05, help="success radius in metres")
     parser.add_argument("--seed", type=seed, default=0, help="seed of the initial states")
     add_overwrite(parser, "results")
@@ -116,6 +122,7 @@ def run(args: argparse.Namespace) -> int:
             duration=args.duration,
             tolerance=args.tolerance,
             seed=args.seed,
+            supersample=args.supersample or int(spec.get("data", {}).get("supersample", 1)),
             progress_meter=cldyn.TqdmProgressMeter(),
         )
     except ValueError as error:

@@ -33,6 +33,13 @@ def register(subparsers) -> None:
     parser.add_argument("--frames", type=count, default=50, help="frames per run")
     parser.add_argument("--size", type=count, default=64, help="side of the square frames in pixels")
     parser.add_argument(
+        "--supersample",
+        type=count,
+        default=1,
+        help="each pixel the mean of N x N samples, as a camera integrates light over a pixel (1: MuJoCo's "
+        "render, the paper's frames; see keyvision.RenderProtocol)",
+    )
+    parser.add_argument(
         "--validation-runs",
         type=positive(integer=True, allow_zero=True),
         default=50,
@@ -65,7 +72,11 @@ def run(args: argparse.Namespace) -> int:
     import keyvision
 
     protocol = keyvision.RenderProtocol(
-        runs=args.runs, frames=args.frames, image_size=args.size, validation_runs=args.validation_runs
+        runs=args.runs,
+        frames=args.frames,
+        image_size=args.size,
+        validation_runs=args.validation_runs,
+        supersample=args.supersample,
     )
     cache = pathlib.Path(args.cache) if args.cache is not None else keyvision.cache_directory()
     start = time.time()

@@ -417,6 +417,8 @@ def run(args: argparse.Namespace) -> int:
             "file": str(data_path.resolve()),
             "scene": frames.info.get("scene"),
             "cache_key": frames.info.get("cache_key"),
+            # the camera's samples per pixel side (keyvision.RenderProtocol): swing_up's default
+            "supersample": int((frames.info.get("protocol") or {}).get("supersample", 1)),
         },
         schedule=schedule.describe(),
     )
