@@ -99,8 +99,9 @@ def run(args: argparse.Namespace) -> int:
         elif cached:
             where = f"cached in {cached[0]}"
     height, width = frames.image_size
+    camera = f", {args.supersample}x{args.supersample} samples per pixel" if args.supersample > 1 else ""
     print(
-        f"{done} {frames.num_runs} runs x {frames.num_frames} frames of {height}x{width} pixels "
+        f"{done} {frames.num_runs} runs x {frames.num_frames} frames of {height}x{width} pixels{camera} "
         f"({frames.info['validation_runs']} runs for validation, dt {frames.dt:g} s) of {args.scene} "
         f"in {seconds:.1f} s; {where}; wrote {path}"
     )
