@@ -122,7 +122,7 @@ def run(args: argparse.Namespace) -> int:
             duration=args.duration,
             tolerance=args.tolerance,
             seed=args.seed,
-            supersample=args.supersample or int(spec.get("data", {}).get("supersample", 1)),
+            supersample=args.supersample or int((spec.get("data") or {}).get("supersample", 1)),
             progress_meter=cldyn.TqdmProgressMeter(),
         )
     except ValueError as error:
