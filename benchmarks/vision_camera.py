@@ -116,13 +116,14 @@ def main() -> None:
     parser.add_argument("--model", action="append", required=True, metavar="SCENE=DIR")
     args = parser.parse_args()
     import keyvision
+    from keyvision._files import trained_supersample
 
     results = {}
     for item in args.model:
         scene, directory = item.split("=", 1)
         model, spec = keyvision.load_model(directory)
         name = pathlib.Path(directory).name
-        trained = int((spec.get("data") or {}).get("supersample", 1))
+        trained = trained_supersample(spec)
         results[name] = {
             "scene": f"keycld/{scene}",
             "model": repo_path(directory),

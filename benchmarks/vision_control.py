@@ -132,7 +132,9 @@ def _si_factor(model, scene: str, poses: int = 200, seed: int = 0, supersample: 
 
 def _supersample(args, spec: dict) -> int:
     """The camera's samples per pixel side: `--supersample`, else those of the model's training frames."""
-    return args.supersample or int((spec.get("data") or {}).get("supersample", 1))
+    from keyvision._files import trained_supersample
+
+    return args.supersample or trained_supersample(spec)
 
 
 def _kind(row: dict) -> str:

@@ -26,6 +26,12 @@ INITIAL_NAME = "model-initial.eqx"  # the starting networks of a training that t
 NETWORKS = {"unet": (KeypointEstimator, Renderer), "fc": (KeypointEstimatorFC, RendererFC)}
 
 
+def trained_supersample(spec: dict) -> int:
+    """The samples per pixel side of the camera whose frames a model was trained on (its
+    `keyvision.json`'s `data.supersample`; 1, MuJoCo's render, for models written before it)."""
+    return int((spec.get("data") or {}).get("supersample", 1))
+
+
 def model_from_spec(spec: dict, *, key: PRNGKeyArray) -> KeyCLD:
     """The untrained float32 `KeyCLD` that a specification describes.
 

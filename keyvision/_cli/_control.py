@@ -86,6 +86,7 @@ def run(args: argparse.Namespace) -> int:
     import cldyn
     import keyvision
     from cldyn._misc import atomic_save, atomic_write
+    from keyvision._files import trained_supersample
 
     model, spec = load_model(args.model, "--model")
     scene = args.scene or spec.get("data", {}).get("scene")
@@ -122,7 +123,7 @@ def run(args: argparse.Namespace) -> int:
             duration=args.duration,
             tolerance=args.tolerance,
             seed=args.seed,
-            supersample=args.supersample or int((spec.get("data") or {}).get("supersample", 1)),
+            supersample=args.supersample or trained_supersample(spec),
             progress_meter=cldyn.TqdmProgressMeter(),
         )
     except ValueError as error:
