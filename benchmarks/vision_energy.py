@@ -67,12 +67,14 @@ def _learnt_potential(model, frames: np.ndarray) -> np.ndarray:
     return np.asarray(energy, dtype=float)
 
 
-def potential(scene: str, model) -> list[dict]:
+def potential(scene: str, model, supersample: int = 1) -> list[dict]:
     import keyvision
 
     rows = []
     for name, parameter, qpos in SEQUENCES[scene]:
-        poses = keyvision.render_poses(f"keycld/{scene}", qpos, image_size=model.image_size)
+        poses = keyvision.render_poses(
+            f"keycld/{scene}", qpos, image_size=model.image_size, supersample=supersample
+        )
         learnt, true = _learnt_potential(model, poses["frames"]), poses["potential"]
         row = {
             "sequence": name,
@@ -130,7 +132,7 @@ def _plot_potential(path: pathlib.Path, scene: str, rows: list[dict]) -> None:
     plt.close(figure)
 
 
-def long_horizon(scene: str, model) -> tuple[dict, np.ndarray, np.ndarray]:
+def long_horizon(scene: str, model, supersample: int = 1) -> tuple[dict, np.ndarray, np.ndarray]:
     import equinox as eqx
     import jax
     import jax.numpy as jnp
@@ -139,7 +141,12 @@ def long_horizon(scene: str, model) -> tuple[dict, np.ndarray, np.ndarray]:
     import keyvision
 
     protocol = keyvision.RenderProtocol(
-        runs=LONG_RUNS, frames=3, validation_runs=0, image_size=model.image_size, zero_control_fraction=1.0
+        runs=LONG_RUNS,
+        frames=3,
+        validation_runs=0,
+        image_size=model.image_size,
+        zero_control_fraction=1.0,
+        supersample=supersample,
     )
     frames = keyvision.render(f"keycld/{scene}", protocol=protocol, seed=1, workers=1)
     images = jnp.asarray(frames.images(np.float32))
@@ -212,15 +219,17 @@ def main() -> None:
     import jax
 
     import keyvision
+    from keyvision._files import trained_supersample
 
     given = dict(item.split("=", 1) for item in args.model)
     scenes = []
     for scene in args.scenes:
         directory = pathlib.Path(given.get(scene, MODELS[scene]))
-        model, _ = keyvision.load_model(directory)
-        rows = potential(scene, model)
+        model, spec = keyvision.load_model(directory)
+        camera = trained_supersample(spec)  # the frames of the camera the model was trained on
+        rows = potential(scene, model, camera)
         _plot_potential(RESULTS / f"vision_potential_{scene}.png", scene, rows)
-        long, energy, strip = long_horizon(scene, model)
+        long, energy, strip = long_horizon(scene, model, camera)
         _plot_long(RESULTS / f"vision_long_{scene}.png", scene, energy, strip, long["dt"])
         scenes.append(
             {

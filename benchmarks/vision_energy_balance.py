@@ -42,8 +42,9 @@ KeyCLD's camera, `--runs` runs of `--frames` frames rendered with `--seed`), mea
   smooth `dB`; the rows on MuJoCo's work need none.
 
 Each of `--models` (by default the two committed acrobot models: KeyCLD's, and the structured one of
-docs/images.md's "Control from frames") is measured on the same runs. Also reported: the estimator's
-joint-angle error against MuJoCo (sign and offset aligned) and the part of it
+docs/images.md's "Control from frames") is measured on the same runs, rendered through the camera the
+model was trained on (its `keyvision.json`'s `data.supersample`; `--supersample` for another). Also
+reported: the estimator's joint-angle error against MuJoCo (sign and offset aligned) and the part of it
 that is not a function of the pose. Writes benchmarks/results/vision_energy_balance.{json,md} (with a
 nonzero seed, `vision_energy_balance_seed<seed>.{json,md}`; `--name` for another) and prints the JSON.
 
@@ -454,7 +455,9 @@ def _markdown(result: dict) -> str:
         "term), which the rows on MuJoCo's work do not need.",
     ]
     for name, entry in result["models"].items():
-        lines += ["", f"## `{name}` (`{entry['model']}`)", ""]
+        supersample = next(iter(entry["cases"].values())).get("supersample", 1)
+        camera = f", frames of {supersample} x {supersample} samples per pixel" if supersample > 1 else ""
+        lines += ["", f"## `{name}` (`{entry['model']}`{camera})", ""]
         lines += [
             "| data | source | shoulder | elbow | residual / balance RMS |",
             "| --- | --- | --- | --- | --- |",
@@ -479,11 +482,18 @@ def _jsonable(fit: dict) -> dict:
 
 
 def _cases(model, spec, protocol, args, measured: dict) -> dict:
-    """Every row for one model. `measured` keeps the rows that do not depend on the model (MuJoCo's
-    states, as they are or filtered), by data set and filter, for the next model."""
+    """Every row for one model, on frames of the camera it was trained on (`--supersample` for
+    another). `measured` keeps the rows that do not depend on the model (MuJoCo's states, as they are
+    or filtered), by data set and filter, for the next model: the runs are the same whatever the camera."""
+    import dataclasses
+
     import numpy as np
 
     import keyvision
+    from keyvision._files import trained_supersample
+
+    supersample = args.supersample or trained_supersample(spec)
+    protocol = dataclasses.replace(protocol, supersample=supersample)
 
     def state(data, frames, angles=None, smoothing=(0, 0), instrumented=False):
         key = (data, smoothing, instrumented)
@@ -520,6 +530,7 @@ def _cases(model, spec, protocol, args, measured: dict) -> dict:
             )
         cases[data] = {
             "scene": source,
+            "supersample": supersample,
             "true_damping": truth,
             "dt": frames.dt,
             "state": _jsonable(state(data, frames)),
@@ -545,6 +556,12 @@ def main() -> None:
         nargs="+",
         default=[str(path) for path in MODELS],
         help="directories of learnt acrobot models (keyvision.load_model)",
+    )
+    parser.add_argument(
+        "--supersample",
+        type=int,
+        help="samples per pixel side of the camera (default: each model's training camera, "
+        "keyvision.RenderProtocol's supersample)",
     )
     parser.add_argument(
         "--name",

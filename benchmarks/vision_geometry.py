@@ -102,8 +102,10 @@ def run(scene: str, model_dir: pathlib.Path, data: pathlib.Path, steps: int, see
     import keyvision
     from keyvision import _control, _train
     from keyvision._data import as_images
+    from keyvision._files import trained_supersample
 
-    model, _ = keyvision.load_model(model_dir)
+    model, spec = keyvision.load_model(model_dir)
+    supersample = trained_supersample(spec)  # the camera the model was trained on
     frames = keyvision.Frames.load(data / "frames.npz" if data.is_dir() else data)
     train, _ = frames.split()
     started = time.perf_counter()
@@ -174,14 +176,16 @@ def run(scene: str, model_dir: pathlib.Path, data: pathlib.Path, steps: int, see
 
     # 2. the structured dynamics fitted to each set of keypoints
     mujoco = _control._mujoco()
-    _, setup = _control._model_scene(model, f"keycld/{scene}", "fixed", "vision_geometry")
+    _, setup = _control._model_scene(model, f"keycld/{scene}", "fixed", "vision_geometry", supersample)
     view = _control.PlanarCamera(setup.homography, setup.basis)
     state = mujoco.MjData(setup.model)
     _, upright = _control._postures(mujoco, setup, state, view)
-    pose = keyvision.render_poses(f"keycld/{scene}", upright[None])
+    pose = keyvision.render_poses(f"keycld/{scene}", upright[None], supersample=supersample)
     upright_true = view.to_image(np.asarray(pose["keypoints"][0]).reshape(-1, 2)).reshape(-1)
     upright_est = np.asarray(model.encode(as_images(pose["frames"][0])), np.float64)
-    true_rates = keyvision.target_linearisation(model, f"keycld/{scene}")["gravity_rates"]
+    true_rates = keyvision.target_linearisation(model, f"keycld/{scene}", supersample=supersample)[
+        "gravity_rates"
+    ]
     sigma = float(np.sqrt(np.mean(residual**2)))
     noisy = truth + np.random.default_rng(seed).normal(0.0, sigma, truth.shape)
     u = train.u.astype(np.float64)

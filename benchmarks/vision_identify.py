@@ -16,10 +16,14 @@ previous rows); prints the JSON.
     python benchmarks/vision_identify.py --scenes pendulum --attributes damping --seeds 0 --refine-steps 300
     python benchmarks/vision_identify.py --scenes acrobot --attributes stock --seeds 0  # the stock acrobot
     python benchmarks/vision_identify.py --scenes acrobot --attributes stock --frames 300   # 3 s runs
+    python benchmarks/vision_identify.py --scenes acrobot --attributes stock --frames 300 --seeds 0 \
+        --model acrobot=benchmarks/results/vision_models/acrobot-camera4   # another model, its camera
 
 The stock cases render dm_control's own physics under KeyCLD's camera and look
 (`cldyn.mujoco.keycld_scene(name, physics="stock")`); the model's inputs take the frames' controls by
-actuator name (`keyvision.identify(inputs=)`: the stock acrobot drives the elbow only).
+actuator name (`keyvision.identify(inputs=)`: the stock acrobot drives the elbow only). Frames come
+through the camera each model was trained on (its `keyvision.json`'s `data.supersample`); a row whose
+model is not the scene's committed one names it.
 """
 
 import argparse
@@ -70,14 +74,17 @@ def _case(scene: str, joints: dict | None, seed: int, args, *, stock: bool = Fal
 
     import cldyn.mujoco
     import keyvision
+    from keyvision._files import trained_supersample
 
     source = f"keycld/{scene}" + (":stock" if stock else "")
     xml = cldyn.mujoco.modify_scene(source, joints=joints) if joints else source
+    model, spec = keyvision.load_model(args.models[scene])
+    # the frames of the camera the model was trained on (MuJoCo's render, or one averaging samples)
+    supersample = trained_supersample(spec)
     protocol = keyvision.RenderProtocol(
-        runs=args.runs, validation_runs=args.validation_runs, frames=args.frames
+        runs=args.runs, validation_runs=args.validation_runs, frames=args.frames, supersample=supersample
     )
     frames = keyvision.render(xml, protocol=protocol, seed=seed, workers=1)
-    model, spec = keyvision.load_model(args.models[scene])
     # the model's inputs are the actuators of the scene it learnt from: the frames' controls by name
     inputs = keyvision.scene_actuators(spec["data"]["scene"])
     refine = None
@@ -96,6 +103,7 @@ def _case(scene: str, joints: dict | None, seed: int, args, *, stock: bool = Fal
     return {
         "model": repo_path(args.models[scene]),
         "frames": args.frames,
+        "supersample": supersample,
         "outcome": report.outcome,
         "effects": list(result.effects),
         "adequacy": list(report.adequacy.problems) if report.adequacy is not None else [],
@@ -114,8 +122,19 @@ def _frames(row: dict) -> int:
 
 
 def _length(row: dict) -> str:
-    """How a row's runs differ from the paper's, for its label ("" for the paper's length)."""
-    return "" if _frames(row) == PAPER_FRAMES else f", runs of {_frames(row)} frames"
+    """How a row's runs and model differ from the paper's and the committed ones, for its label ("" for
+    the paper's length and the scene's committed model)."""
+    label = "" if _frames(row) == PAPER_FRAMES else f", runs of {_frames(row)} frames"
+    if _model(row) != repo_path(MODELS[row["scene"]]):
+        label += f", model {pathlib.Path(_model(row)).name}"
+    if row.get("supersample", 1) > 1:
+        label += f", camera {row['supersample']} x {row['supersample']}"
+    return label
+
+
+def _model(row: dict) -> str:
+    """The row's model (rows written before it was stored: the scene's committed model)."""
+    return row.get("model") or repo_path(MODELS[row["scene"]])
 
 
 def main() -> None:
@@ -197,10 +216,10 @@ def main() -> None:
         for seed in range(args.seeds):
             negatives.append({"scene": scene, "seed": seed, **_case(scene, None, seed, args)})
     previous = RESULTS / "vision_identify.json"
-    case = lambda r: (r["scene"], r["joint"], r["attribute"], r["truth"], _frames(r))
+    case = lambda r: (r["scene"], r["joint"], r["attribute"], r["truth"], _frames(r), _model(r))
     if previous.is_file():  # the cases and negative controls not run this time keep their previous rows
         earlier = json.loads(previous.read_text())
-        negative = lambda n: (n["scene"], n["seed"], _frames(n))
+        negative = lambda n: (n["scene"], n["seed"], _frames(n), _model(n))
         ran = {case(r) for r in rows} | {negative(n) for n in negatives}
         rows = [r for r in earlier.get("cases", []) if case(r) not in ran] + rows
         negatives = [n for n in earlier.get("negatives", []) if negative(n) not in ran] + negatives
@@ -211,9 +230,10 @@ def main() -> None:
             order.index(r["scene"]),
             keys.index(case(r)[:4]) if case(r)[:4] in keys else len(keys),
             _frames(r),
+            _model(r),
         )
     )
-    negatives.sort(key=lambda n: (order.index(n["scene"]), n["seed"], _frames(n)))
+    negatives.sort(key=lambda n: (order.index(n["scene"]), n["seed"], _frames(n), _model(n)))
     scenes = [scene for scene in order if any(n["scene"] == scene for n in negatives)]
     result = {
         "machine": machine(),
@@ -279,11 +299,11 @@ def main() -> None:
         lines += [f"- {label}: {named}" for label, named in asks]
     lines += ["", "Effect-free data (negative control):", ""]
     for scene in scenes:
-        for frames in sorted({_frames(n) for n in negatives if n["scene"] == scene}):
-            mine = [n for n in negatives if n["scene"] == scene and _frames(n) == frames]
+        for frames, model in sorted({(_frames(n), _model(n)) for n in negatives if n["scene"] == scene}):
+            mine = [n for n in negatives if (n["scene"], _frames(n), _model(n)) == (scene, frames, model)]
             quiet = sum(1 for n in mine if not n["effects"])
             outcomes = ", ".join(n["outcome"] for n in mine)
-            length = f" (runs of {frames} frames)" if frames != PAPER_FRAMES else ""
+            length = f" ({_length(mine[0]).lstrip(', ')})" if _length(mine[0]) else ""
             lines.append(f"- {scene}{length}: nothing detected in {quiet} of {len(mine)} seeds ({outcomes})")
     write("vision_identify", result, "\n".join(lines) + "\n")
 
