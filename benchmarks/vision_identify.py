@@ -96,7 +96,14 @@ def _case(scene: str, joints: dict | None, seed: int, args, *, stock: bool = Fal
     try:
         result = keyvision.identify(model, frames, inputs=inputs, refine=refine, seed=seed)
     except ValueError as error:  # e.g. keypoints that break the constraints: reported, not fatal
-        return {"outcome": f"refused: {error}", "effects": [], "seconds": time.perf_counter() - started}
+        return {
+            "model": repo_path(args.models[scene]),  # a refused row is kept by its model and length too
+            "frames": args.frames,
+            "supersample": supersample,
+            "outcome": f"refused: {error}",
+            "effects": [],
+            "seconds": time.perf_counter() - started,
+        }
     finally:
         jax.clear_caches()
     report = result.identification
