@@ -3,8 +3,9 @@
 MuJoCo plays reality with an effect the nominal model (the same MJCF through `from_mjcf`, without the
 effect) does not declare: each injected effect must be the top detection at the right joint or
 actuator, its value within 15% (30% for friction), and the held-out rollout error must drop at least
-5x. Also: nothing detected on effect-free data in 9 of 10 seeds, two effects at once, damping through
-1 mm noise, a learned nominal model, and dm_control's stock cart-poles with their rail limits.
+5x; one joint's damping per scene is found through 1 mm of noise. Also: nothing detected on
+effect-free data in 9 of 10 seeds, two effects at once, a learned nominal model, and dm_control's
+stock cart-poles with their rail limits.
 benchmarks/identify_keycld.py runs the same `CASES` as a table.
 """
 
@@ -135,6 +136,13 @@ def _check(result, effect, where, truth, rtol):
     assert drop >= MIN_ROLLOUT_DROP, f"rollout error {result.before} -> {result.after}"
 
 
+# the damping of one joint per scene is identified through 1 mm of noise on the keypoints (the
+# benchmark runs these noise-free as well; in the tests the noise-free cases would add nothing that
+# the noisy ones and the other effects do not check)
+NOISY = {("keycld/pendulum", "hinge"), ("keycld/cartpole", "slider"), ("keycld/acrobot", "elbow")}
+NOISE = 1e-3  # m
+
+
 @pytest.mark.slow
 @pytest.mark.parametrize(
     "scene, effect, where, change, truth",
@@ -145,7 +153,9 @@ def test_injected_effect_is_found(scene, effect, where, change, truth):
     # dm_control's MJCF compiles angles in degrees: springref is given in degrees, reported in radians
     springref = np.radians(change["joints"][where]["springref"]) if effect == "joint_spring" else None
     seed = CASES.index((scene, effect, where, change, truth))
-    result = _identify(scene, change, seed, near=(where, springref) if springref is not None else None)
+    noise = NOISE if effect == "joint_damping" and (scene, where) in NOISY else 0.0
+    near = (where, springref) if springref is not None else None
+    result = _identify(scene, change, seed, noise=noise, near=near)
     _check(result, effect, where, truth, FRICTION_RTOL if effect == "joint_coulomb" else VALUE_RTOL)
     if springref is not None:
         assert abs(result.detected[0].parameters["springref"] - springref) < 0.05
@@ -168,16 +178,6 @@ def test_two_effects_at_once_are_both_found():
     assert abs(found[("joint_damping", "elbow")] - 0.1) <= VALUE_RTOL * 0.1
     assert abs(found[("joint_spring", "shoulder")] - 10.0) <= VALUE_RTOL * 10.0
     assert result.before.rollout_rmse_1s >= MIN_ROLLOUT_DROP * result.after.rollout_rmse_1s
-
-
-@pytest.mark.slow
-@pytest.mark.parametrize(
-    "scene, where, damping",
-    [("keycld/pendulum", "hinge", 0.1), ("keycld/cartpole", "slider", 1.0), ("keycld/acrobot", "elbow", 0.1)],
-)
-def test_damping_is_found_through_1mm_noise(scene, where, damping):
-    result = _identify(scene, dict(joints={where: {"damping": damping}}), 31, noise=1e-3)
-    _check(result, "joint_damping", where, damping, VALUE_RTOL)
 
 
 @pytest.mark.slow
