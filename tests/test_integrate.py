@@ -105,7 +105,7 @@ def test_gradient_through_500_projected_steps_matches_finite_differences():
         return jnp.sum(out.x[-1] ** 2) + 0.1 * jnp.sum(out.xd[-1] ** 2)
 
     # one compilation: the finite differences read the loss that value_and_grad returns beside the
-    # gradient (a compiled loss of its own would double this test's time)
+    # gradient (a compiled loss of its own would be a second compilation)
     value_and_grad = eqx.filter_jit(jax.value_and_grad(loss))
     _, grads = value_and_grad(params)
 
