@@ -92,14 +92,14 @@ def _case(scene: str, joints: dict | None, seed: int, args, *, stock: bool = Fal
         from keyvision._identify import joint_stage
 
         refine = joint_stage(spec.get("schedule") or {}, args.refine_steps)
+    # what a row is kept by, refused or not: its model, its runs' length and its camera
+    row = {"model": repo_path(args.models[scene]), "frames": args.frames, "supersample": supersample}
     started = time.perf_counter()
     try:
         result = keyvision.identify(model, frames, inputs=inputs, refine=refine, seed=seed)
     except ValueError as error:  # e.g. keypoints that break the constraints: reported, not fatal
         return {
-            "model": repo_path(args.models[scene]),  # a refused row is kept by its model and length too
-            "frames": args.frames,
-            "supersample": supersample,
+            **row,
             "outcome": f"refused: {error}",
             "effects": [],
             "seconds": time.perf_counter() - started,
@@ -108,9 +108,7 @@ def _case(scene: str, joints: dict | None, seed: int, args, *, stock: bool = Fal
         jax.clear_caches()
     report = result.identification
     return {
-        "model": repo_path(args.models[scene]),
-        "frames": args.frames,
-        "supersample": supersample,
+        **row,
         "outcome": report.outcome,
         "effects": list(result.effects),
         "adequacy": list(report.adequacy.problems) if report.adequacy is not None else [],
