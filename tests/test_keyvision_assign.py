@@ -31,17 +31,16 @@ def test_permuted_networks_renumber_the_keypoints_and_draw_the_same(estimator_cl
     images = jax.random.uniform(keys[2], (2, SIZE, SIZE, 3), jnp.float32)
     points = jax.random.uniform(keys[3], (2, 3, 2), jnp.float32, -0.8, 0.8)
 
-    @eqx.filter_jit
-    def run(estimator, renderer):
+    @eqx.filter_jit  # one program for every permutation: the networks are its arguments
+    def run(estimator, renderer, points):
         return jax.vmap(estimator)(images), jax.vmap(renderer)(points)
 
-    found, drawn = run(estimator, renderer)
+    found, drawn = run(estimator, renderer, points)
     for order in itertools.permutations(range(3)):
         order = list(order)
-        new_found, _ = run(estimator.permute(order), renderer)
-        np.testing.assert_allclose(new_found, found[:, order], atol=ROUNDING)
         # the renumbered renderer, given the renumbered keypoints, draws what the old one drew
-        renumbered = eqx.filter_jit(jax.vmap(renderer.permute(order)))(points[:, order])
+        new_found, renumbered = run(estimator.permute(order), renderer.permute(order), points[:, order])
+        np.testing.assert_allclose(new_found, found[:, order], atol=ROUNDING)
         np.testing.assert_allclose(renumbered, drawn, atol=ROUNDING)
     with pytest.raises(ValueError, match="permutation of 0..2"):
         estimator.permute([0, 0, 1])
