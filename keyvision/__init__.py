@@ -12,7 +12,6 @@ from ._control import (
     FramePolicy as FramePolicy,
     image_target as image_target,
     swing_up as swing_up,
-    target_linearisation as target_linearisation,
 )
 from ._data import (
     Frames as Frames,
@@ -54,6 +53,7 @@ from ._keypoints import (
     pixel_to_frame as pixel_to_frame,
     spatial_softmax as spatial_softmax,
 )
+from ._linearise import target_linearisation as target_linearisation
 from ._loss import (
     ConstraintDrift as ConstraintDrift,
     HeatmapRegulariser as HeatmapRegulariser,

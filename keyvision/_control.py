@@ -27,7 +27,6 @@ from ._scene import _HINGE, _Camera, _mujoco, _scene
 
 _SETTLE = 0.5  # seconds at the end of a run over which the target must hold
 _SHADOW_SIZE = 512
-_REST_ITERATIONS = 8  # chord steps from the linearised rest of `target_linearisation`
 
 
 def _as_images(frames) -> Array:
@@ -442,123 +441,6 @@ def _model_state(mujoco, scene, data, view, calibration) -> tuple[np.ndarray, np
 def _calibrated(calibration, keypoints) -> np.ndarray:
     """True keypoints `(K, 2)` in the image frame -> the model's keypoint frame `(2K,)`."""
     return calibration[0] @ np.asarray(keypoints).reshape(-1) + calibration[1]
-
-
-def target_linearisation(
-    model: KeyCLD,
-    scene: "str | os.PathLike" = "keycld/pendulum",
-    *,
-    kp: float = 5.0,
-    kd: float = 2.0,
-    metric: str = "euclidean",
-    trim: bool = False,
-    camera: str | int = "fixed",
-    supersample: int = 1,
-    step: float = 1e-4,
-    seed: int = 0,
-) -> dict:
-    """The true closed loop at the upright target: MuJoCo's dynamics under the learnt controller,
-    linearised there. Says whether energy shaping on `model` can hold the target at all.
-
-    The controller is `swing_up`'s with `observe="state"` (true keypoints and velocities mapped into
-    the model's keypoint frame by the same affine calibration, the target the calibrated upright
-    posture): near the target the frames' estimate adds noise, not a different map. MuJoCo's joint
-    accelerations under that control are differenced centrally (`step` in joint units) in positions
-    and velocities about the upright posture at rest, giving the closed loop's matrix
-    `[[0, I], [dqacc/dq, dqacc/dqvel]]`; an eigenvalue with a positive real part means the target is
-    unstable in truth, whatever the learnt model predicts. Beside it,
-    the scene's own gravity rates at the target: the eigenvalues of `M^-1 G` (`G` the destabilising
-    stiffness of gravity, `-d qfrc_bias / dq`, `M` the joint mass matrix). With `metric="mass"` and
-    exact masses, the shaped spring holds a learnt potential whose curvature along a mode is wrong
-    by less than `kp / rate` of the truth: the fastest rate sets how exact a learnt potential must be.
-
-    **Arguments:** `model`, `scene`, `kp`, `kd`, `metric`, `trim`, `camera` and `supersample` as
-    `swing_up`; `step`: the finite-difference step; `seed`: the calibration's random poses.
-
-    **Returns:** a dict: `eigenvalues` (of the true closed loop, complex, as `[real, imag]` pairs
-    sorted by real part, largest first), `largest_real_part` (1/s; positive: unstable),
-    `gravity_rates` (1/s², the eigenvalues of `M^-1 G`, largest first), `curvature_tolerance`
-    (`kp` over the largest rate), `control_at_target` (the learnt controller's command at rest at the
-    true upright posture; zero for an exact model), `rest_offset` (joint units: where the true loop
-    comes to rest, off upright: first `-S^-1 a`, with `S` the stiffness block and `a` the joint
-    accelerations that the command at target causes, then chord steps with the same `S` on MuJoCo's
-    accelerations at rest; meaningful where the loop is stable) and `rest_error` (metres: the largest
-    distance of a true keypoint from its upright place in that posture, what `swing_up`'s tolerance
-    measures). Near upright the loop balances
-    `kp M (q - q*) = G (q_V - q_up)` for a learnt potential of the right curvature whose own upright
-    is `q_V` (`q_up` the true one): an error of the learnt upright comes back multiplied by the
-    gravity rate over `kp` (about 9 along the acrobot's fast mode).
-    """
-    check_positive("target_linearisation: step", step)
-    mujoco = _mujoco()
-    protocol, setup = _model_scene(model, scene, camera, "target_linearisation", supersample)
-    physics = setup.model
-    if physics.nq != physics.nv:
-        raise ValueError("target_linearisation: needs a scene of hinges and slides (nq == nv)")
-    view = PlanarCamera(setup.homography, setup.basis)
-    renderer = _Camera(mujoco, setup, protocol)
-    try:
-        data = mujoco.MjData(physics)
-        _, upright = _postures(mujoco, setup, data, view)
-        data.qpos[:] = upright
-        data.qvel[:] = 0.0
-        mujoco.mj_forward(physics, data)
-        upright_world = _true_keypoints(setup, data)
-        upright_keypoints = view.to_image(upright_world)
-        frame_dt = float(physics.opt.timestep) * protocol.steps_per_frame
-        calibration = _calibrate(mujoco, setup, data, renderer, model, view, np.random.default_rng(seed))
-        target = _calibrated(calibration, upright_keypoints)
-        policy = FramePolicy(model, target, frame_dt, kp=kp, kd=kd, metric=metric, trim=trim)
-    finally:
-        renderer.close()
-    dtype = policy.target.dtype
-
-    def acceleration(qpos, qvel, control: bool = True):
-        data.qpos[:], data.qvel[:] = qpos, qvel
-        data.ctrl[:] = 0.0
-        mujoco.mj_forward(physics, data)
-        if control:
-            x, xd = _model_state(mujoco, setup, data, view, calibration)
-            data.ctrl[:] = np.asarray(_state_step(policy, jnp.asarray(x, dtype), jnp.asarray(xd, dtype)))
-            mujoco.mj_forward(physics, data)
-        return data.qacc.copy(), data.ctrl.copy()
-
-    n = physics.nv
-    rest = np.zeros(n)
-    stiffness, damping, gravity = (np.zeros((n, n)) for _ in range(3))
-    for j in range(n):
-        e = np.zeros(n)
-        e[j] = step
-        for matrix, ahead, behind, control in (
-            (stiffness, (upright + e, rest), (upright - e, rest), True),
-            (damping, (upright, e), (upright, -e), True),
-            (gravity, (upright + e, rest), (upright - e, rest), False),
-        ):
-            difference = acceleration(*ahead, control)[0] - acceleration(*behind, control)[0]
-            matrix[:, j] = difference / (2 * step)
-    closed = np.block([[np.zeros((n, n)), np.eye(n)], [stiffness, damping]])
-    eigenvalues = sorted(np.linalg.eigvals(closed), key=lambda z: -z.real)
-    # M^-1 G is d qacc / d qpos without control at rest: gravity's rates
-    rates = np.sort(np.linalg.eigvals(gravity).real)[::-1]
-    at_target, command = acceleration(upright, rest)
-    # the loop's rest, qacc(upright + offset, 0) = 0: linearised, then chord steps with the same S
-    offset = np.zeros(n)
-    residual = at_target
-    for _ in range(_REST_ITERATIONS):
-        offset = offset - np.linalg.lstsq(stiffness, residual, rcond=None)[0]
-        residual = acceleration(upright + offset, rest)[0]
-    data.qpos[:], data.qvel[:] = upright + offset, rest
-    mujoco.mj_forward(physics, data)
-    rest_error = np.linalg.norm(_true_keypoints(setup, data) - upright_world, axis=-1).max()
-    return {
-        "eigenvalues": [[float(z.real), float(z.imag)] for z in eigenvalues],
-        "largest_real_part": float(eigenvalues[0].real),
-        "gravity_rates": rates.tolist(),
-        "curvature_tolerance": float(kp / rates[0]) if rates[0] > 0 else float("inf"),
-        "control_at_target": command.tolist(),
-        "rest_offset": offset.tolist(),
-        "rest_error": float(rest_error),
-    }
 
 
 def _calibrate(mujoco, scene, data, renderer, model, view, rng, poses: int = 200):
