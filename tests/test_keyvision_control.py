@@ -127,17 +127,12 @@ def test_the_state_variant_speaks_the_models_coordinates():
     assert abs(radius - np.linalg.norm(result["target_true_keypoints"])) > 0.1
 
 
-@pytest.mark.mujoco
-def test_target_linearisation_without_control_is_the_free_pendulum_at_upright():
-    # no learnt potential and no gains: the controller commands nothing, and MuJoCo's pendulum
-    # linearised at upright is the inverted pendulum, eigenvalues +- sqrt(m g d / I) with d the
-    # distance of the centre of mass from the hinge and I the inertia about the hinge (the body's
-    # principal inertia about the hinge axis plus m d^2, plus the joint's armature)
-    import equinox as eqx
+def _pendulum_gravity_rate() -> float:
+    """m g d / I of MuJoCo's KeyCLD pendulum from its model's numbers: d the distance of the centre of
+    mass from the hinge, I the inertia about the hinge (the body's principal inertia about the hinge
+    axis plus m d^2, plus the joint's armature)."""
     import mujoco
 
-    model = eqx.tree_at(lambda m: m.dynamics.potential, _tiny_pendulum(), None)
-    result = keyvision.target_linearisation(model, "keycld/pendulum", kp=0.0, kd=0.0)
     physics = mujoco.MjModel.from_xml_string(keyvision._render._scene_xml("keycld/pendulum"))
     (hinge,) = range(physics.njnt)
     body = physics.jnt_bodyid[hinge]
@@ -151,7 +146,18 @@ def test_target_linearisation_without_control_is_the_free_pendulum_at_upright():
     inertia = float(local @ (physics.body_inertia[body] * local))
     mass = physics.body_mass[body]
     hinge_inertia = inertia + mass * d**2 + physics.dof_armature[hinge]
-    rate = mass * np.linalg.norm(physics.opt.gravity) * d / hinge_inertia
+    return float(mass * np.linalg.norm(physics.opt.gravity) * d / hinge_inertia)
+
+
+@pytest.mark.mujoco
+def test_target_linearisation_without_control_is_the_free_pendulum_at_upright():
+    # no learnt potential and no gains: the controller commands nothing, and MuJoCo's pendulum
+    # linearised at upright is the inverted pendulum, eigenvalues +- sqrt(m g d / I)
+    import equinox as eqx
+
+    model = eqx.tree_at(lambda m: m.dynamics.potential, _tiny_pendulum(), None)
+    result = keyvision.target_linearisation(model, "keycld/pendulum", kp=0.0, kd=0.0)
+    rate = _pendulum_gravity_rate()
     assert result["gravity_rates"] == pytest.approx([rate], rel=1e-4)
     assert result["largest_real_part"] == pytest.approx(np.sqrt(rate), rel=1e-4)
     _, (low, imaginary) = result["eigenvalues"]  # largest real part first
@@ -186,6 +192,37 @@ def test_the_state_variant_aims_at_the_upright_posture_in_its_own_coordinates():
     result = keyvision.swing_up(model, "keycld/pendulum", observe="state", runs=1, duration=0.04, kp=5.0)
     frame_target = keyvision.image_target(model, result["target_frame"])
     assert np.linalg.norm(np.asarray(frame_target) - result["target_keypoints"]) > 1e-3
+
+
+@pytest.mark.mujoco
+def test_control_command_writes_its_results_and_the_loop_through_the_camera(tmp_path, capsys):
+    imageio = pytest.importorskip("imageio.v3")
+    spec = {
+        "keypoints": 1,
+        "width": 4,
+        "image_size": SIZE,
+        "dynamics": {
+            "kind": "keycld", "size": 2, "num_inputs": 1, "constraint": "pendulum", "width": 8, "depth": 1
+        },
+        "data": {"scene": "keycld/pendulum"},
+    }
+    model = keyvision.model_from_spec(spec, key=jax.random.key(0))
+    directory, out = keyvision.save_model(tmp_path / "m", model, spec), tmp_path / "out"
+    argv = ["control", "--model", str(directory), "--out", str(out), "--duration", "0.1", "--linearise"]
+    status = main(argv)
+    said, _ = capsys.readouterr()
+    assert status == 0
+    record = __import__("json").loads((out / "control.json").read_text())
+    assert record["runs"] == 1 and len(record["final_error"]) == 1
+    loop = record["true_loop"]
+    assert loop["observe"] == "frames" and len(loop["camera_gain"]) == 1
+    # the scene's gravity, not the model's: MuJoCo's pendulum at upright
+    assert loop["gravity_rates"] == pytest.approx([_pendulum_gravity_rate()], rel=1e-4)
+    assert "true loop at the target, fed the frames" in said
+    frames = imageio.imread(out / "control.gif", index=None)
+    assert frames.shape == (6, 4 * SIZE, 4 * SIZE, 3)  # 0.1 s at 0.02 s, both ends, drawn 4x larger
+    assert imageio.imread(out / "target.png").shape == (SIZE, SIZE, 3)
+    assert (out / "control.png").is_file()
 
 
 @pytest.mark.mujoco

@@ -2,7 +2,9 @@
 the controller seeing only rendered camera frames (`keyvision.swing_up`).
 
 The target is a frame (`--target target.png`, the model's image size) or, by default, the scene
-rendered in its upright posture. Writes control.json (success, errors, timing), target.png,
+rendered in its upright posture. With `--linearise`, MuJoCo's loop at the target under the same
+controller, fed what it sees, is linearised too (`keyvision.target_linearisation`). Writes control.json
+(success, errors, timing, and `true_loop`), target.png,
 control.gif (the camera view of the first run with the estimated keypoints and the target's drawn)
 and control.png (true joint angles, the learnt energy and the controls over time).
 """
@@ -68,6 +70,13 @@ def register(subparsers) -> None:
         "see keyvision.RenderProtocol)",
     )
     parser.add_argument("--tolerance", type=positive(), default=0.05, help="success radius in metres")
+    parser.add_argument(
+        "--linearise",
+        action="store_true",
+        help="also linearise MuJoCo's loop at the upright target under this controller, fed what it sees "
+        "(keyvision.target_linearisation): whether the target can be held at all, and where the loop "
+        "rests; written to control.json as true_loop",
+    )
     parser.add_argument("--seed", type=seed, default=0, help="seed of the initial states")
     add_overwrite(parser, "results")
     parser.set_defaults(run=run)
@@ -126,6 +135,18 @@ def run(args: argparse.Namespace) -> int:
             supersample=args.supersample or trained_supersample(spec),
             progress_meter=cldyn.TqdmProgressMeter(),
         )
+        loop = None
+        if args.linearise:
+            loop = keyvision.target_linearisation(
+                model,
+                scene,
+                observe=args.observe,
+                kp=args.kp,
+                kd=args.kd,
+                metric=args.metric,
+                trim=args.trim,
+                supersample=args.supersample or trained_supersample(spec),
+            )
     except ValueError as error:
         raise CommandError(str(error)) from None
     atomic_save(
@@ -158,6 +179,8 @@ def run(args: argparse.Namespace) -> int:
     }
     record.update(model=str(args.model), target=str(target_file) if target_file else "upright")
     record["target_keypoints"] = np.asarray(result["target_keypoints"]).tolist()
+    if loop is not None:
+        record["true_loop"] = loop
     atomic_write(out / "control.json", json.dumps(record, indent=1))
     reached = [t for t in result["time_to_tolerance"] if t is not None]
     print(
@@ -168,6 +191,16 @@ def run(args: argparse.Namespace) -> int:
         + f"); {result['steps_per_second']:.0f} control steps/s, real time {result['real_time_rate']:.0f}; "
         f"wrote {', '.join(_RESULTS)} to {out}"
     )
+    if loop is not None:
+        held = "unstable: no run can hold it" if loop["largest_real_part"] > 0 else "stable"
+        rest = "" if loop["largest_real_part"] > 0 else f", resting {loop['rest_error']:.3f} m from upright"
+        gain = loop.get("camera_gain")
+        seen = "" if gain is None else "; the camera reads " + ", ".join(f"{g:.0%}" for g in gain)
+        print(
+            f"the true loop at the target, fed the {args.observe}: largest real part "
+            f"{loop['largest_real_part']:+.2f}/s ({held}){rest}"
+            + ("" if gain is None else seen + " of a small turn of each joint near upright")
+        )
     return 0
 
 
