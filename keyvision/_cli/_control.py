@@ -118,35 +118,28 @@ def run(args: argparse.Namespace) -> int:
             f"(KeyCLD or KeyCLD-NC dynamics), this model's are {type(model.dynamics).__name__}"
         )
     out = output_directory(args.out, results=_RESULTS, overwrite=args.overwrite)
+    # the controller and camera that the swing-up and the linearisation share
+    controller = {
+        "observe": args.observe,
+        "kp": args.kp,
+        "kd": args.kd,
+        "metric": args.metric,
+        "trim": args.trim,
+        "supersample": args.supersample or trained_supersample(spec),
+    }
     try:
         result = keyvision.swing_up(
             model,
             scene,
-            observe=args.observe,
             target=target,
-            kp=args.kp,
-            kd=args.kd,
-            metric=args.metric,
-            trim=args.trim,
             runs=args.runs,
             duration=args.duration,
             tolerance=args.tolerance,
             seed=args.seed,
-            supersample=args.supersample or trained_supersample(spec),
             progress_meter=cldyn.TqdmProgressMeter(),
+            **controller,
         )
-        loop = None
-        if args.linearise:
-            loop = keyvision.target_linearisation(
-                model,
-                scene,
-                observe=args.observe,
-                kp=args.kp,
-                kd=args.kd,
-                metric=args.metric,
-                trim=args.trim,
-                supersample=args.supersample or trained_supersample(spec),
-            )
+        loop = keyvision.target_linearisation(model, scene, **controller) if args.linearise else None
     except ValueError as error:
         raise CommandError(str(error)) from None
     atomic_save(
