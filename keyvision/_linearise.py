@@ -147,10 +147,8 @@ def target_linearisation(
             target = reading(upright)
             offsets = amplitude * _OFFSETS
             turned = [[upright + a * np.eye(n)[j] for a in offsets] for j in range(n)]
-            readings = {(j, i): reading(q) for j in range(n) for i, q in enumerate(turned[j])}
-            slope = np.stack(
-                [_slope(offsets, [readings[j, i] for i in range(len(offsets))]) for j in range(n)], axis=1
-            )
+            readings = [[reading(q) for q in postures] for postures in turned]
+            slope = np.stack([_slope(offsets, row) for row in readings], axis=1)
             # the true keypoints' motion per joint, into the model's keypoint frame by the calibration
             truth = calibration[0] @ np.stack(
                 [(seen(upright + e) - seen(upright - e)) / (2 * step) for e in step * np.eye(n)], axis=1
@@ -186,7 +184,7 @@ def target_linearisation(
                 ahead, behind = acceleration(upright + e, rest)[0], acceleration(upright - e, rest)[0]
                 stiffness[:, j] = (ahead - behind) / (2 * step)
             else:
-                accelerations = [acceleration(q, rest, x=readings[j, i])[0] for i, q in enumerate(turned[j])]
+                accelerations = [acceleration(q, rest, x=x)[0] for q, x in zip(turned[j], readings[j])]
                 stiffness[:, j] = _slope(offsets, accelerations)
             x_up = None if observe == "state" else target  # the reading at upright is the target
             ahead, behind = acceleration(upright, e, x=x_up)[0], acceleration(upright, -e, x=x_up)[0]
