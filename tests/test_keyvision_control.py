@@ -63,6 +63,9 @@ def test_a_policy_needs_learnt_energy():
         keyvision.FramePolicy(node, jnp.zeros(2), 0.02)
     with pytest.raises(ValueError, match="image_target: the frame has shape"):
         keyvision.image_target(_tiny_pendulum(), jnp.zeros((8, 8, 3)))
+    # a 16-bit frame taken for floats in [0, 1] would be far too bright: refused, naming its dtype
+    with pytest.raises(TypeError, match="uint8 0..255 or float in \\[0, 1\\], got dtype uint16"):
+        keyvision.image_target(_tiny_pendulum(), np.zeros((SIZE, SIZE, 3), np.uint16))
 
 
 @pytest.mark.mujoco
@@ -235,6 +238,16 @@ def test_control_command_refuses_a_target_of_the_wrong_size(tmp_path, capsys):
     _, err = capsys.readouterr()
     assert status == 2
     assert "--target" in err and "(32, 32) pixels" in err
+    assert not (tmp_path / "out").exists()
+    # grey levels, and a file that is no image: one line each that says what the file is
+    imageio.imwrite(target, np.zeros((64, 64), np.uint8), extension=".png")
+    broken = tmp_path / "broken.png"
+    broken.write_bytes(b"not a png")
+    for path, said in ((target, "grey levels; the model takes RGB frames"), (broken, "not a readable image")):
+        out = str(tmp_path / "out")
+        status = main(["control", "--model", str(model), "--out", out, "--target", str(path)])
+        _, err = capsys.readouterr()
+        assert status == 2 and said in err and len(err.strip().splitlines()) == 1, err
     assert not (tmp_path / "out").exists()
 
 

@@ -103,15 +103,7 @@ def run(args: argparse.Namespace) -> int:
         raise CommandError(f"--model {args.model}: its keyvision.json names no scene; pass --scene")
     target = None
     if target_file is not None:
-        try:
-            target = np.asarray(imageio.imread(target_file))[..., :3]
-        except Exception as error:  # imageio raises many kinds for a file that is not an image
-            raise CommandError(f"--target {target_file}: not a readable image ({error})") from None
-        if target.shape != (model.image_size, model.image_size, 3):
-            raise CommandError(
-                f"--target {target_file}: an image of {target.shape[:2]} pixels; the model takes "
-                f"{model.image_size} x {model.image_size}"
-            )
+        target = _target_frame(target_file, model.image_size, imageio)
     if not isinstance(model.dynamics, cldyn.ConstrainedLagrangian):
         raise CommandError(
             f"--model {args.model}: energy shaping needs a learnt potential and input matrix "
@@ -195,6 +187,29 @@ def run(args: argparse.Namespace) -> int:
             + ("" if gain is None else seen + " of a small turn of each joint near upright")
         )
     return 0
+
+
+def _target_frame(path, size: int, imageio):
+    """The target image as 8-bit RGB, as the renderer draws frames: 8- or 16-bit RGB or RGBA (alpha
+    dropped); anything else (not an image, grey levels, another size) refused with what it is."""
+    import numpy as np
+
+    try:
+        image = np.asarray(imageio.imread(path, plugin="pillow"))  # PNG, JPEG, ...: what Pillow reads
+    except Exception as error:  # imageio raises many kinds for a file that is not an image
+        first = str(error).strip().splitlines()[0] if str(error).strip() else type(error).__name__
+        raise CommandError(f"--target {path}: not a readable image ({first})") from None
+    if image.ndim != 3 or image.shape[-1] not in (3, 4):
+        what = "grey levels" if image.ndim == 2 else f"an array of shape {image.shape}"
+        raise CommandError(f"--target {path}: {what}; the model takes RGB frames of {size} x {size}")
+    if image.shape[:2] != (size, size):
+        raise CommandError(
+            f"--target {path}: an image of {image.shape[:2]} pixels; the model takes {size} x {size}"
+        )
+    if image.dtype not in (np.uint8, np.uint16):
+        raise CommandError(f"--target {path}: pixels of type {image.dtype}; 8- or 16-bit RGB expected")
+    image = image[..., :3]
+    return image if image.dtype == np.uint8 else np.round(image / 257.0).astype(np.uint8)
 
 
 def _gif(path, result, imageio, atomic_save) -> None:
