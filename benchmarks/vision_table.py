@@ -217,6 +217,11 @@ def _train_concurrently(trainings: list, jobs: int, device: str) -> None:
             process.wait()
 
 
+def _errors(mse_per_run) -> np.ndarray:
+    """`keyvision evaluate`'s errors per run and frame, a failed prediction's (null) as infinite."""
+    return np.nan_to_num(np.asarray(mse_per_run, dtype=float), nan=np.inf)
+
+
 def _summary(evaluations: list[dict]) -> dict:
     per_run = np.concatenate([np.asarray(e["vpt_per_run"]) for e in evaluations])
     return {
@@ -228,7 +233,7 @@ def _summary(evaluations: list[dict]) -> dict:
         "runs": evaluations[0]["runs"],
         "seconds": [e["seconds"] for e in evaluations],
         "trained_on": [e.get("trained_on") for e in evaluations],
-        "mse_per_run": np.concatenate([np.asarray(e["mse_per_run"]) for e in evaluations]).tolist(),
+        "mse_per_run": np.concatenate([_errors(e["mse_per_run"]) for e in evaluations]).tolist(),
         "threshold": evaluations[0]["threshold"],
         "dt": evaluations[0]["dt"],
     }
@@ -243,10 +248,10 @@ def _plot_mse(path: pathlib.Path, scene: str, rows: dict) -> None:
     figure, axes = plt.subplots(figsize=(5.5, 3.4), constrained_layout=True)
     threshold = None
     for name, row in rows.items():
-        mse = np.asarray(row["mse_per_run"])
+        mse = _errors(row["mse_per_run"])
         t = np.arange(mse.shape[1]) * row["dt"]
         (line,) = axes.plot(t, np.median(mse, axis=0), label=name)
-        low, high = np.percentile(mse, [25, 75], axis=0)
+        low, high = np.percentile(mse, [25, 75], axis=0, method="nearest")
         axes.fill_between(t, low, high, color=line.get_color(), alpha=0.2)
         threshold = row["threshold"]
     axes.axhline(threshold, color="k", linestyle="--", label="threshold")

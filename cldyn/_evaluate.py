@@ -137,8 +137,9 @@ def valid_prediction_time(
 
     The state-space counterpart of KeyCLD's eq. 16 (from Botev et al.): with `e_i` the position error
     of the worst keypoint at predicted sample `i` (`keypoint_error`), the VPT is the number of
-    samples before the first `e_i > threshold`. Pass the predicted samples only (not the given
-    initial state). The threshold is a distance; `evaluate` uses a fraction of the range of motion.
+    samples before the first `e_i > threshold`; an error that is not a number (a prediction that
+    failed) counts as exceeding it. Pass the predicted samples only (not the given initial state).
+    The threshold is a distance; `evaluate` uses a fraction of the range of motion.
 
     **Arguments:**
 
@@ -160,7 +161,7 @@ def valid_prediction_time(
         raise ValueError(f"threshold must be positive, got {threshold}")
     error = keypoint_error(predicted, truth, dim=dim)
     samples = error.shape[-1]
-    exceeded = error > threshold
+    exceeded = ~(error <= threshold)  # an error that is not a number (a failed prediction) exceeds it
     first = jnp.where(jnp.any(exceeded, axis=-1), jnp.argmax(exceeded, axis=-1), samples)
     first = first.astype(float)  # the default floating dtype, as integer division gives
     return first * dt if dt is not None else first / samples

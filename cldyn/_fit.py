@@ -440,10 +440,11 @@ def fit(
                         "left untouched"
                     )
                 )
+                named = "" if stage is None else f" of stage {stage!r}"
                 raise NonFiniteLossError(
-                    f"fit: non-finite loss or gradient at step {step + 1} (loss = {values[done]}); stopped "
-                    f"without applying the update; {where}. Lower the learning rate, check the data for "
-                    "outliers, or start from a checkpoint.",
+                    f"fit: non-finite loss or gradient at step {step + 1}{named} (loss = {values[done]}); "
+                    f"stopped without applying the update; {where}. Lower the learning rate, check the "
+                    "data for outliers, or start from a checkpoint.",
                     step=step + 1,
                     model=eqx.combine(params, static),
                     checkpoint=None if saved_step is None else files["checkpoint"],

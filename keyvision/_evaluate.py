@@ -144,7 +144,8 @@ def valid_prediction_time(
     whose mean squared error exceeds the threshold, as a fraction of the `T` frames.
 
     $\\mathrm{VPT} = \\frac{1}{T} \\min \\{ i : \\operatorname{MSE}(z'_i, z_i) > \\varepsilon \\}$, and 1
-    when no frame exceeds it (Table 1 of the paper reports this fraction). This is the image-space
+    when no frame exceeds it (Table 1 of the paper reports this fraction). A frame whose error is not
+    a number (predicted by a rollout that failed, see `predict`) exceeds it. This is the image-space
     metric of the paper; `cldyn.valid_prediction_time` is its state-space counterpart (a distance
     between keypoints, not a pixel error).
 
@@ -172,7 +173,7 @@ def valid_prediction_time(
     epsilon = prediction_threshold(truth) if threshold is None else float(threshold)
     if not epsilon > 0:
         raise ValueError(f"valid_prediction_time: the threshold must be positive, got {epsilon}")
-    exceeded = _frame_mse(predicted, truth) > epsilon
+    exceeded = ~(_frame_mse(predicted, truth) <= epsilon)  # NaN frames (a failed prediction) exceed it
     samples = exceeded.shape[-1]
     first = jnp.where(jnp.any(exceeded, axis=-1), jnp.argmax(exceeded, axis=-1), samples)
     return first / samples
@@ -186,11 +187,13 @@ def predict_keypoints(
     *,
     solver: dfx.AbstractSolver = cldyn.RK4(),
     stabilisation: cldyn.AbstractStabilisation | None = cldyn.Projection(),
+    throw: bool = True,
 ) -> Float[Array, "T k"]:
     """The keypoints that `predict` renders: frame 0 encoded, frames `1 .. T-1` integrated.
 
     Takes the arguments of `predict` (see there); returns `(T, k)` keypoints in the image frame,
-    aligned with `images`. `draw_keypoints` marks them on frames.
+    aligned with `images` (with `throw=False`, not finite from a failed rollout's failure on).
+    `draw_keypoints` marks them on frames.
     """
     images, controls = jnp.asarray(images), jnp.asarray(controls)
     if images.ndim != 4 or images.shape[0] < 3:
@@ -200,9 +203,13 @@ def predict_keypoints(
     x = model.encode(images[:3])
     run = cldyn.rollout(
         model.dynamics, x[1], (x[2] - x[0]) / (2 * dt), controls[1:].astype(x.dtype), dt,
-        solver=solver, stabilisation=stabilisation, project=True,
+        solver=solver, stabilisation=stabilisation, project=True, throw=throw,
     )
-    return jnp.concatenate([x[:1], run.x], axis=0)
+    if throw:
+        return jnp.concatenate([x[:1], run.x], axis=0)
+    # NaN from the failure on (diffrax leaves the samples it did not reach infinite)
+    failed = jnp.cumsum(~jnp.all(jnp.isfinite(run.x), axis=-1)) > 0
+    return jnp.concatenate([x[:1], jnp.where(failed[:, None], jnp.nan, run.x)], axis=0)
 
 
 def predict(
@@ -213,6 +220,7 @@ def predict(
     *,
     solver: dfx.AbstractSolver = cldyn.RK4(),
     stabilisation: cldyn.AbstractStabilisation | None = cldyn.Projection(),
+    throw: bool = True,
 ) -> Float[Array, "T H W 3"]:
     """Predict the frames of a run from its first three: encode, integrate the dynamics, render.
 
@@ -231,6 +239,9 @@ def predict(
     - `dt`: the time between frames.
     - `solver`: a diffrax solver; `cldyn.RK4()` (one step per frame) by default.
     - `stabilisation`: `cldyn.Projection()` by default.
+    - `throw`: raise when the rollout fails (a projection that does not converge: a model that
+      breaks its own constraints); with `False` the frames from the failure on are NaN, which
+      `valid_prediction_time` counts as exceeding the threshold (how `keyvision evaluate` scores).
 
     **Returns:** `(T, H, W, 3)` predicted frames, aligned with `images`.
 
@@ -243,8 +254,17 @@ def predict(
         vpt = keyvision.valid_prediction_time(predicted, images)
         ```
     """
-    keypoints = predict_keypoints(model, images, controls, dt, solver=solver, stabilisation=stabilisation)
-    return model.decode(keypoints)
+    keypoints = predict_keypoints(
+        model, images, controls, dt, solver=solver, stabilisation=stabilisation, throw=throw
+    )
+    return _decode_finite(model, keypoints)
+
+
+def _decode_finite(model, keypoints):
+    # frames drawn from keypoints that are not finite are NaN: a Gaussian map at an infinite
+    # keypoint is zero, and the renderer would draw the scene without the body
+    finite = jnp.all(jnp.isfinite(keypoints), axis=-1)[..., None, None, None]
+    return jnp.where(finite, model.decode(jnp.where(finite[..., 0, 0], keypoints, 0.0)), jnp.nan)
 
 
 def draw_keypoints(
@@ -258,7 +278,8 @@ def draw_keypoints(
 
     For looking at what the estimator tracks. A keypoint at image-frame point `(x, y)` (DESIGN.md:
     `[-1, 1]`, y up) marks the pixel `keyvision.frame_to_pixel` rounds it to and its neighbours
-    within `radius`; keypoints outside the image are left out.
+    within `radius`; keypoints outside the image or not finite are left out, and NaN pixels (the
+    frames of a failed prediction, see `predict`) are drawn black.
 
     **Arguments:**
 
@@ -290,7 +311,7 @@ def draw_keypoints(
     if frames.dtype == np.uint8:
         out = frames.copy()
     else:
-        out = np.round(255 * np.clip(frames, 0, 1)).astype(np.uint8)
+        out = np.round(255 * np.clip(np.nan_to_num(frames, nan=0.0), 0, 1)).astype(np.uint8)
     height, width = out.shape[-3:-1]
     points = keypoints.reshape(keypoints.shape[:-1] + (-1, 2))
     palette = np.asarray(_PALETTE if colors is None else colors, dtype=float)
@@ -299,7 +320,9 @@ def draw_keypoints(
             f"draw_keypoints: colors must hold one RGB colour per keypoint, ({points.shape[-2]}, 3), got "
             f"{palette.shape}"
         )
-    pixels = np.round(np.asarray(frame_to_pixel(points, height, width))).astype(int)  # (..., K, 2)
+    pixels = np.asarray(frame_to_pixel(points, height, width))
+    finite = np.all(np.isfinite(pixels), axis=-1, keepdims=True)
+    pixels = np.where(finite, np.round(np.where(finite, pixels, 0)), -1).astype(int)  # (..., K, 2)
     flat_out, flat_pixels = out.reshape(-1, height, width, 3), pixels.reshape(-1, points.shape[-2], 2)
     for frame, marks in zip(flat_out, flat_pixels):
         for index, (row, col) in enumerate(marks):
@@ -317,9 +340,9 @@ _PALETTE = ((1.0, 0.0, 0.0), (0.0, 0.8, 1.0), (1.0, 1.0, 0.0), (0.0, 1.0, 0.0), 
 def _predict_batch(model, z, u, dt: float):
     # the model an argument, not a constant of the compiled function: models of one structure (the
     # stages of a training, a model before and after a refit) share one compilation
-    def one(z, u):
-        keypoints = predict_keypoints(model, z, u, dt)
-        return keypoints, model.decode(keypoints)
+    def one(z, u):  # a rollout that fails is scored, not raised: its frames from the failure on are NaN
+        keypoints = predict_keypoints(model, z, u, dt, throw=False)
+        return keypoints, _decode_finite(model, keypoints)
 
     return jax.vmap(one)(z, u)
 

@@ -160,6 +160,10 @@ def test_valid_prediction_time_by_hand():
     two[:, 0] = [0.0, 0.05, 0.5]
     two[:, 3] = [0.0, 0.2, 0.0]
     assert float(cldyn.valid_prediction_time(two, np.zeros((3, 4)), threshold=0.1)) == pytest.approx(1 / 3)
+    # a prediction that failed (NaN from sample 3 on, errors below the threshold before): not valid there
+    failed = predicted.copy()
+    failed[3:] = np.nan
+    assert float(cldyn.valid_prediction_time(failed, truth, threshold=1.0)) == pytest.approx(0.6)
     with pytest.raises(ValueError, match="threshold must be positive"):
         cldyn.valid_prediction_time(predicted, truth, threshold=0.0)
     # a shape mismatch: jaxtyping's check in tests, a ValueError otherwise

@@ -311,3 +311,22 @@ def test_demo_predicts_new_runs_with_the_shipped_model(tmp_path, capsys):
     for name in ("frames.npz", "mse.png", "strip.png", "prediction.gif"):
         assert (tmp_path / name).stat().st_size > 0
     assert "autoencoder alone" in out
+
+
+def test_a_stage_that_diverged_says_what_is_kept_and_how_to_go_on(tmp_path):
+    from keyvision._cli._train import _diverged
+
+    error = cldyn.NonFiniteLossError(
+        "fit: non-finite loss or gradient at step 7 of stage 'refit'", step=7, model=None, checkpoint=None
+    )
+    assert _diverged(error, tmp_path) == str(error)  # nothing finished: nothing more to say
+    for age, stage in enumerate(("autoencoder", "dynamics", "joint-2")):  # in the order written
+        (tmp_path / f"model-{stage}.eqx").write_bytes(b"")
+        os.utime(tmp_path / f"model-{stage}.eqx", ns=(10**9 * (age + 1),) * 2)
+    said = _diverged(error, tmp_path)
+    assert said.startswith(str(error))
+    assert f"kept in {tmp_path} (autoencoder, dynamics, joint-2)" in said
+    assert f"keyvision evaluate --model {tmp_path} --stage joint-2" in said
+    assert f"--networks-from {tmp_path}" in said
+    (tmp_path / "model-autoencoder.eqx").unlink()  # without an autoencoder stage, no --networks-from
+    assert "--networks-from" not in _diverged(error, tmp_path)

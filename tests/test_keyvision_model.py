@@ -108,6 +108,32 @@ def test_valid_prediction_time_hand_made():
     np.testing.assert_allclose(vpt, [0.3, 1.0], atol=VPT_FRACTION_TOL)
     with pytest.raises(ValueError, match="same shape"):
         keyvision.valid_prediction_time(predicted[:, :5], truth)
+    # the frames of a prediction that failed are NaN from the failure on: not valid there, however
+    # close the frames before it
+    predicted[1, 7:] = np.nan
+    vpt = keyvision.valid_prediction_time(predicted, truth)
+    np.testing.assert_allclose(vpt, [0.5, 0.7], atol=VPT_FRACTION_TOL)
+
+
+def test_a_prediction_that_fails_is_scored_from_the_failure_on():
+    # an acrobot driven by controls of 1e9 leaves its constraints further than one projection brings
+    # it back: an error by default, NaN frames from the failing sample on with throw=False
+    keys = jax.random.split(jax.random.key(0), 3)
+    model = keyvision.KeyCLD(
+        keyvision.KeypointEstimator(2, width=4, image_size=SIZE, key=keys[0]),
+        cldyn.keycld_model(4, 2, cldyn.keycld_constraint("acrobot"), key=keys[1], width=8),
+        keyvision.Renderer(2, width=4, image_size=SIZE, key=keys[2]),
+    )
+    model = _cast(model, jnp.float32)
+    images = jax.random.uniform(jax.random.key(3), (6, SIZE, SIZE, 3), jnp.float32)
+    controls = jnp.full((6, 2), 1e9, jnp.float32)
+    frames = np.asarray(eqx.filter_jit(keyvision.predict)(model, images, controls, 0.02, throw=False))
+    finite = np.all(np.isfinite(frames), axis=(1, 2, 3))
+    first = int(np.argmin(finite))  # frames 0 and 1 are drawn from the estimated keypoints
+    assert 2 <= first < 6 and finite[:first].all() and np.isnan(frames[first:]).all()
+    # however lax the threshold, the prediction is valid up to the failure only
+    vpt = keyvision.valid_prediction_time(frames, np.asarray(images), threshold=1e6)
+    assert float(vpt) == pytest.approx(first / 6)
 
 
 # -- model and losses --------------------------------------------------------------------------------

@@ -4,6 +4,7 @@ keypoints track the true pose."""
 
 import argparse
 import json
+import warnings
 
 import numpy as np
 
@@ -59,10 +60,11 @@ def _plot_mse(path, ts, mse, threshold: float) -> None:
 
     plt = optional_import("matplotlib.pyplot", purpose="keyvision evaluate's plot")
     figure, axes = plt.subplots(figsize=(5, 3.2), layout="constrained")
-    axes.plot(ts, mse.mean(axis=0), label="mean over runs")
-    axes.fill_between(
-        ts, np.percentile(mse, 25, axis=0), np.percentile(mse, 75, axis=0), alpha=0.3, label="25-75%"
-    )
+    with warnings.catch_warnings():  # a frame that no run predicted (all failed) is a gap
+        warnings.simplefilter("ignore", RuntimeWarning)
+        axes.plot(ts, np.nanmean(mse, axis=0), label="mean over runs")
+        low, high = np.nanpercentile(mse, 25, axis=0), np.nanpercentile(mse, 75, axis=0)
+    axes.fill_between(ts, low, high, alpha=0.3, label="25-75%")
     axes.axhline(threshold, color="k", linestyle="--", linewidth=1, label="VPT threshold")
     axes.set(xlabel="time (s)", ylabel="MSE per frame", title="prediction error over time")
     axes.legend()
@@ -78,7 +80,7 @@ def _strip(path, truth, predicted) -> None:
         np.linspace(0, truth.shape[0] - 1, min(_STRIP_FRAMES, truth.shape[0])).round().astype(int)
     )
     rows = [np.concatenate(list(frames[shown]), axis=1) for frames in (truth, predicted)]
-    strip = np.round(255 * np.clip(np.concatenate(rows, axis=0), 0, 1)).astype(np.uint8)
+    strip = np.round(255 * np.clip(np.nan_to_num(np.concatenate(rows, axis=0)), 0, 1)).astype(np.uint8)
     atomic_save(path, lambda temporary: imageio.imwrite(temporary, strip, extension=".png"))
 
 
@@ -150,7 +152,8 @@ def report(model, validation, out, *, batch: int = 8, strip_run: int = 0) -> tup
     threshold = keyvision.prediction_threshold(images)
     vpt = np.asarray(keyvision.valid_prediction_time(predicted, images, threshold=threshold))
     ceiling = np.asarray(keyvision.valid_prediction_time(redrawn, images, threshold=threshold))
-    mse = np.mean((predicted - images) ** 2, axis=(-3, -2, -1))
+    mse = np.mean((predicted - images) ** 2, axis=(-3, -2, -1))  # NaN where a prediction failed
+    failed = ~np.all(np.isfinite(predicted_keypoints), axis=(-2, -1))
     summary = {"mean": float(vpt.mean()), "median": float(np.median(vpt)), "std": float(vpt.std())}
     reconstruction = float(np.mean((redrawn - images) ** 2))
     record = {
@@ -162,8 +165,9 @@ def report(model, validation, out, *, batch: int = 8, strip_run: int = 0) -> tup
             "mse_over_threshold": reconstruction / threshold,
         },
         "threshold": threshold,
-        "mse_over_time": mse.mean(axis=0).tolist(),
-        "mse_per_run": mse.tolist(),
+        "mse_over_time": _numbers(_over_runs(mse)),
+        "mse_per_run": [_numbers(run) for run in mse],
+        "failed_runs": np.flatnonzero(failed).tolist(),
         "runs": validation.num_runs,
         "frames": validation.num_frames,
         "dt": validation.dt,
@@ -203,9 +207,28 @@ def report(model, validation, out, *, batch: int = 8, strip_run: int = 0) -> tup
             )
             if name in record
         )
+        + (
+            f"; the predictions of {failed.sum()} runs failed (a projection that did not converge: the "
+            "model breaks its own constraints), their frames from the failure on scored as beyond the "
+            "threshold"
+            if failed.any()
+            else ""
+        )
         + f"; wrote {', '.join(_RESULTS)} to {out}"
     )
     return record, line
+
+
+def _over_runs(mse):
+    """The mean error at each time over the runs whose prediction reached it (NaN where none did)."""
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)
+        return np.nanmean(mse, axis=0)
+
+
+def _numbers(values) -> list:
+    """A list for JSON: numbers, null where a value is not finite (JSON has no NaN)."""
+    return [float(v) if np.isfinite(v) else None for v in np.asarray(values, dtype=float)]
 
 
 def run(args: argparse.Namespace) -> int:

@@ -329,6 +329,27 @@ def _more_rounds(previous, schedule: dict) -> bool:
     return previous["rounds"] <= schedule["rounds"] and {**previous, "rounds": schedule["rounds"]} == schedule
 
 
+def _diverged(error, out) -> str:
+    """What a stage that diverged leaves, and how to go on: the same options would diverge at the same
+    step again, and `--resume` takes no other options, but a new training can start from the finished
+    autoencoder stage."""
+    models = sorted(out.glob("model-*.eqx"), key=lambda path: path.stat().st_mtime_ns)
+    finished = [path.stem.removeprefix("model-") for path in models]
+    said = str(error)
+    if not finished:
+        return said
+    said += (
+        f" The stages finished before it are kept in {out} ({', '.join(finished)}); `keyvision evaluate "
+        f"--model {out} --stage {finished[-1]}` evaluates the last."
+    )
+    if "autoencoder" in finished:
+        said += (
+            f" To go on from its autoencoder with other options (a lower --lr), start a new training "
+            f"with --networks-from {out}."
+        )
+    return said
+
+
 def _checkpointed(out, args: argparse.Namespace) -> bool:
     return any((out / f"checkpoint-{stage}.eqx").exists() for stage in _stages(args))
 
@@ -482,6 +503,8 @@ def run(args: argparse.Namespace) -> int:
                 out.rmdir()
         if isinstance(error, KeyboardInterrupt):
             return _interrupted(args, out)
+        if isinstance(error, cldyn.NonFiniteLossError):
+            raise CommandError(_diverged(error, out)) from None
         raise
     atomic_save(out / MODEL_NAME, lambda temporary: eqx.tree_serialise_leaves(temporary, result.model))
     summary = {"out": str(out), "seconds": round(sum(s.seconds for s in result.stages.values()), 2)}
