@@ -69,6 +69,11 @@ STOCK = {
 }
 
 
+def _mse(images: dict) -> str:
+    """An image MSE for the table; none where some runs' predictions failed."""
+    return "failed" if images["mse"] is None else f"{images['mse']:.2e}"
+
+
 def _case(scene: str, joints: dict | None, seed: int, args, *, stock: bool = False) -> dict:
     import jax
 
@@ -276,10 +281,10 @@ def main() -> None:
         vpt = mse = "-"
         if images:
             vpt = f"{images['before']['vpt']['mean']:.3f} -> {images['after']['vpt']['mean']:.3f}"
-            mse = f"{images['before']['mse']:.2e} -> {images['after']['mse']:.2e}"
+            mse = f"{_mse(images['before'])} -> {_mse(images['after'])}"
             if "refined" in images:  # then jointly with the image losses
                 vpt += f" -> {images['refined']['vpt']['mean']:.3f} (image refit)"
-                mse += f" -> {images['refined']['mse']:.2e} (image refit)"
+                mse += f" -> {_mse(images['refined'])} (image refit)"
         outcome = row["outcome"] + (f" ({'; '.join(row['adequacy'])})" if row.get("adequacy") else "")
         lines.append(
             f"| {row['scene']} | {row['attribute']} {row['truth']} at {row['joint']}{_length(row)} "

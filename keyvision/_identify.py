@@ -524,15 +524,21 @@ def _image_errors(before, after, validation, refined=None) -> dict:
     models = {"before": before, "after": after, **({} if refined is None else {"refined": refined})}
     for name, model in models.items():
         model = _single(model)
-        predicted = predict_runs(model, images, controls, validation.dt)[1]
+        keypoints, predicted = predict_runs(model, images, controls, validation.dt)
         vpt = np.asarray(valid_prediction_time(predicted, images, threshold=threshold))
+        # NaN (null in JSON) over the frames where a run's prediction failed: no error to average
         per_frame = np.mean((predicted - images) ** 2, axis=(0, 2, 3, 4))
         record[name] = {
             "vpt": {"mean": float(vpt.mean()), "median": float(np.median(vpt))},
-            "mse": float(per_frame.mean()),
-            "mse_over_time": per_frame.tolist(),
+            "mse": _number(per_frame.mean()),
+            "mse_over_time": [_number(v) for v in per_frame],
+            "failed_runs": np.flatnonzero(~np.all(np.isfinite(keypoints), axis=(-2, -1))).tolist(),
         }
     return record
+
+
+def _number(value) -> float | None:
+    return float(value) if np.isfinite(value) else None
 
 
 def joint_stage(recipe: dict, steps: int) -> Schedule:

@@ -238,6 +238,7 @@ def test_render_train_evaluate(tmp_path, capsys):
     expected = np.argmax(exceeded) / 6 if exceeded.any() else 1.0
     assert vpt == pytest.approx(expected, abs=VPT_TOL)
     assert record["vpt"]["mean"] == pytest.approx(vpt, abs=VPT_TOL)
+    assert record["failed_runs"] == []
     # the strip shows the true validation frames (every one of the 6) over the predicted ones
     strip = imageio.imread(results / "strip.png")
     assert strip.shape == (32, 6 * 16, 3)
@@ -276,6 +277,7 @@ def test_render_train_evaluate(tmp_path, capsys):
     for name in ("before", "after"):
         per_frame = found["images"][name]["mse_over_time"]
         assert len(per_frame) == 20 and np.mean(per_frame) == pytest.approx(found["images"][name]["mse"])
+        assert found["images"][name]["failed_runs"] == []  # every prediction ran to its end
     assert (tmp_path / "id" / "image_error.png").stat().st_size > 0
     # the refined model, scored beside
     refined = found["images"]["refined"]

@@ -128,13 +128,13 @@ def run(args: argparse.Namespace) -> int:
         was, now = result.images["before"], result.images["after"]
         images = (
             f"; on {result.images['runs']} validation runs VPT {was['vpt']['mean']:.3f} -> "
-            f"{now['vpt']['mean']:.3f}, image MSE {was['mse']:.3g} -> {now['mse']:.3g}"
+            f"{now['vpt']['mean']:.3f}, image MSE {_mse(was)} -> {_mse(now)}"
         )
         if "refined" in result.images:
             refined = result.images["refined"]
             images += (
                 f" (refined with the image losses: VPT {refined['vpt']['mean']:.3f}, "
-                f"MSE {refined['mse']:.3g})"
+                f"MSE {_mse(refined)})"
             )
     print(
         f"{result.identification.outcome}{': ' + found if found else ''} (MuJoCo's units); held-out rollout "
@@ -155,7 +155,7 @@ def _plot_image_error(path, images: dict) -> None:
     figure, axes = plt.subplots(figsize=(5, 3.2), layout="constrained")
     for name in ("before", "after", "refined"):
         if name in images:
-            mse = np.asarray(images[name]["mse_over_time"])
+            mse = np.asarray(images[name]["mse_over_time"], dtype=float)  # null: a failed prediction
             label = f"{name}: VPT {images[name]['vpt']['mean']:.2f}"
             axes.plot(images["dt"] * np.arange(mse.size), mse, label=label)
     axes.axhline(images["threshold"], color="k", linestyle="--", linewidth=1, label="VPT threshold")
@@ -168,3 +168,10 @@ def _plot_image_error(path, images: dict) -> None:
     axes.legend(fontsize=8)
     atomic_save(path, lambda temporary: figure.savefig(temporary, dpi=120))
     plt.close(figure)
+
+
+def _mse(images: dict) -> str:
+    """An image MSE for the summary line; a model with failed predictions has none (their runs named)."""
+    if images["mse"] is not None:
+        return f"{images['mse']:.3g}"
+    return f"none (the predictions of runs {images['failed_runs']} failed)"
