@@ -31,7 +31,7 @@ _SHADOW_SIZE = 512
 
 def _as_images(frames) -> Array:
     """uint8 `0..255` or float `[0, 1]` frames as float32 `[0, 1]`; any other dtype is refused (a
-    uint16 frame read as floats would be 256 times too bright)."""
+    uint16 frame taken for floats would be thousands of times too bright)."""
     frames = jnp.asarray(frames)
     if frames.dtype == jnp.uint8:
         return frames.astype(jnp.float32) / 255.0

@@ -192,7 +192,7 @@ def predict_keypoints(
     """The keypoints that `predict` renders: frame 0 encoded, frames `1 .. T-1` integrated.
 
     Takes the arguments of `predict` (see there); returns `(T, k)` keypoints in the image frame,
-    aligned with `images` (with `throw=False`, not finite from a failed rollout's failure on).
+    aligned with `images` (with `throw=False`, NaN from the failure of a rollout that fails on).
     `draw_keypoints` marks them on frames.
     """
     images, controls = jnp.asarray(images), jnp.asarray(controls)
