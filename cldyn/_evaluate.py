@@ -96,6 +96,21 @@ def rollout(
     )
 
 
+def failed_samples(trajectory: Trajectory) -> Array:
+    """Which samples of a `rollout(..., throw=False)` lie at or after its failure, `(T,)` booleans.
+
+    On a failure (a projection that did not converge) diffrax stops: it keeps the failing step's
+    state, which is off the constraints, and leaves the samples it did not reach infinite. So the
+    samples from the first one that is not finite on are failed, and so is the last finite one when
+    the result says the solve failed.
+    """
+    finite = jnp.all(jnp.isfinite(trajectory.x), axis=-1) & jnp.all(jnp.isfinite(trajectory.xd), axis=-1)
+    after = jnp.cumsum(~finite) > 0
+    last = jnp.sum(~after) - 1  # the last finite sample before the first that is not
+    stopped = trajectory.result != dfx.RESULTS.successful
+    return after | (stopped & (jnp.arange(finite.shape[0]) == last))
+
+
 def _pair(predicted, truth) -> tuple[Array, Array]:
     predicted, truth = jnp.asarray(predicted), jnp.asarray(truth)
     if predicted.shape != truth.shape or predicted.ndim < 2:
@@ -234,6 +249,9 @@ class Evaluation:
     - `gmre`: the geometric-mean relative error of the positions per run, `(R,)`.
     - `energy`: the model's energy along its rollout `(R, N + 1)`, or `None` without energies.
     - `threshold`: the VPT threshold used (metres).
+    - `failed`: per run, whether its rollout failed (a projection that did not converge: a model that
+      leaves its constraints further than one step can bring it back); such a run's samples from
+      the failure on are NaN, and its VPT ends there. `(R,)`.
     """
 
     ts: np.ndarray
@@ -246,6 +264,7 @@ class Evaluation:
     gmre: np.ndarray
     energy: np.ndarray | None
     threshold: float
+    failed: np.ndarray | None = None
 
     def error_over(self, seconds: float) -> np.ndarray:
         """The root-mean-square keypoint error per run over the first `seconds` of the rollout."""
@@ -261,6 +280,7 @@ class Evaluation:
             "gmre": float(np.exp(np.mean(np.log(self.gmre)))),
             "final_error": float(np.mean(self.error[:, -1])),
             "threshold": self.threshold,
+            "failed_runs": 0 if self.failed is None else int(np.sum(self.failed)),
         }
 
 
@@ -268,9 +288,11 @@ class Evaluation:
 def _evaluation_runs(model, x0, xd0, controls, *, dt, solver, dt0, stabilisation):
     def run(a, b, c):
         trajectory = rollout(
-            model, a, b, c, dt, solver=solver, dt0=dt0, stabilisation=stabilisation, project=True
+            model, a, b, c, dt, solver=solver, dt0=dt0, stabilisation=stabilisation, project=True,
+            throw=False,
         )
-        return trajectory.x, trajectory.xd
+        failed = failed_samples(trajectory)[:, None]  # scored, not raised: NaN from the failure on
+        return jnp.where(failed, jnp.nan, trajectory.x), jnp.where(failed, jnp.nan, trajectory.xd)
 
     return jax.vmap(run)(x0, xd0, controls)
 
@@ -306,7 +328,9 @@ def evaluate(
     - `dim`: dimension of each keypoint.
 
     The data are cast to the model's floating dtype; evaluate a float32-trained model in float64 by
-    casting it first (in JAX's 64-bit mode).
+    casting it first (in JAX's 64-bit mode). A rollout that fails is not an error: its samples from
+    the failure on are NaN and its VPT ends there (`Evaluation.failed`); the mean errors of
+    `summary()` are then NaN, and it counts such runs (`failed_runs`).
 
     **Returns:** an `Evaluation` with the rollouts, per-run VPT, geometric-mean relative error and
     energies (for Lagrangian models).
@@ -353,5 +377,6 @@ def evaluate(
         gmre=np.asarray(geometric_mean_relative_error(xs[:, 1:], truth[:, 1:])),
         energy=energy,
         threshold=float(threshold),
+        failed=~np.all(np.isfinite(np.asarray(xs)), axis=(1, 2)),
     )
 

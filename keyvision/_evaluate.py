@@ -11,6 +11,7 @@ import numpy as np
 from jaxtyping import Array, ArrayLike, Float
 
 import cldyn
+from cldyn._evaluate import failed_samples
 
 from ._data import Frames, ImageSequences, as_images
 from ._keypoints import frame_to_pixel
@@ -207,9 +208,8 @@ def predict_keypoints(
     )
     if throw:
         return jnp.concatenate([x[:1], run.x], axis=0)
-    # NaN from the failure on (diffrax leaves the samples it did not reach infinite)
-    failed = jnp.cumsum(~jnp.all(jnp.isfinite(run.x), axis=-1)) > 0
-    return jnp.concatenate([x[:1], jnp.where(failed[:, None], jnp.nan, run.x)], axis=0)
+    failed = failed_samples(run)[:, None]  # NaN from the failure on
+    return jnp.concatenate([x[:1], jnp.where(failed, jnp.nan, run.x)], axis=0)
 
 
 def predict(

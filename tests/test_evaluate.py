@@ -226,6 +226,28 @@ def test_evaluate_the_exact_model(pendulum_runs):
         cldyn.evaluate(system, data, threshold=0.01, horizon=40)
 
 
+def test_a_rollout_that_fails_is_scored_from_the_failure_on():
+    # the exact acrobot driven by an elbow torque of 1e9 (from the sixth sample) leaves its
+    # constraints further than one projection brings it back: the run is marked failed, NaN from the
+    # failing step on (its state is off the constraints), its VPT ending there; the same run without
+    # the torque is predicted to its end
+    system, joints = cldyn.systems.acrobot()
+    h = 0.01
+    x0, xd0 = joints.to_keypoints(jnp.array([0.3, -0.2]), jnp.zeros(2))
+    x = cldyn.simulate(system, x0, xd0, h * jnp.arange(12.0), solver=cldyn.RK4(), dt0=h).x
+    controls = np.zeros((2, 12, 1))
+    controls[1, 6:] = 1e9  # from the sixth sample on
+    data = cldyn.Sequences(jnp.stack([x, x]), controls, h)
+    # a threshold beyond any distance within the arms' reach: only the failure ends a VPT
+    result = cldyn.evaluate(system, data, threshold=10.0)
+    np.testing.assert_array_equal(result.failed, [False, True])
+    finite = np.all(np.isfinite(result.x[1]), axis=-1)
+    first = int(np.argmin(finite))  # the first sample of the failed run that is NaN
+    assert 6 <= first and finite[:first].all() and np.isnan(result.x[1, first:]).all()
+    assert result.vpt[0] == 1.0 and result.vpt[1] == pytest.approx((first - 1) / 10)
+    assert result.summary()["failed_runs"] == 1
+
+
 def test_evaluate_a_wrong_model_has_a_short_vpt(pendulum_runs):
     system, data = pendulum_runs
     wrong = cldyn.ConstrainedLagrangian(
