@@ -384,6 +384,11 @@ def encode_sequences(model: KeyCLD, data: ImageSequences) -> cldyn.Sequences:
     return cldyn.Sequences(x, jnp.asarray(data.u).astype(x.dtype), data.dt)
 
 
+def json_number(value) -> float | None:
+    """A number for JSON: a float, or None (null) where it is not finite (JSON has no NaN)."""
+    return float(value) if np.isfinite(value) else None
+
+
 @eqx.filter_jit
 def decode_batch(model, keypoints):
     """The frames drawn from keypoints `(..., 2K)` (compiled once per model structure; the

@@ -21,7 +21,7 @@ import cldyn
 from cldyn._constraint import Anchor, Distance, FixedCoordinate, Stack
 
 from ._data import ImageSequences
-from ._evaluate import predict_runs, prediction_threshold, valid_prediction_time
+from ._evaluate import json_number, predict_runs, prediction_threshold, valid_prediction_time
 from ._model import KeyCLD
 from ._train import Schedule, encode_sequences, train
 
@@ -530,15 +530,11 @@ def _image_errors(before, after, validation, refined=None) -> dict:
         per_frame = np.mean((predicted - images) ** 2, axis=(0, 2, 3, 4))
         record[name] = {
             "vpt": {"mean": float(vpt.mean()), "median": float(np.median(vpt))},
-            "mse": _number(per_frame.mean()),
-            "mse_over_time": [_number(v) for v in per_frame],
+            "mse": json_number(per_frame.mean()),
+            "mse_over_time": [json_number(v) for v in per_frame],
             "failed_runs": np.flatnonzero(~np.all(np.isfinite(keypoints), axis=(-2, -1))).tolist(),
         }
     return record
-
-
-def _number(value) -> float | None:
-    return float(value) if np.isfinite(value) else None
 
 
 def joint_stage(recipe: dict, steps: int) -> Schedule:

@@ -137,7 +137,7 @@ def report(model, validation, out, *, batch: int = 8, strip_run: int = 0) -> tup
     strip.png and prediction.gif to `out`; returns the record for vpt.json and a summary line."""
     import keyvision
 
-    from .._evaluate import decode_batch, encode_batch, predict_runs
+    from .._evaluate import decode_batch, encode_batch, json_number, predict_runs
 
     images = validation.images(np.float32)
     controls = validation.u.astype(np.float32)
@@ -165,8 +165,8 @@ def report(model, validation, out, *, batch: int = 8, strip_run: int = 0) -> tup
             "mse_over_threshold": reconstruction / threshold,
         },
         "threshold": threshold,
-        "mse_over_time": _numbers(_over_runs(mse)),
-        "mse_per_run": [_numbers(run) for run in mse],
+        "mse_over_time": [json_number(v) for v in _over_runs(mse)],
+        "mse_per_run": [[json_number(v) for v in run] for run in mse],
         "failed_runs": np.flatnonzero(failed).tolist(),
         "runs": validation.num_runs,
         "frames": validation.num_frames,
@@ -224,11 +224,6 @@ def _over_runs(mse):
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", RuntimeWarning)
         return np.nanmean(mse, axis=0)
-
-
-def _numbers(values) -> list:
-    """A list for JSON: numbers, null where a value is not finite (JSON has no NaN)."""
-    return [float(v) if np.isfinite(v) else None for v in np.asarray(values, dtype=float)]
 
 
 def run(args: argparse.Namespace) -> int:
