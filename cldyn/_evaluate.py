@@ -272,15 +272,24 @@ class Evaluation:
         return np.sqrt(np.mean(self.error[:, window] ** 2, axis=1))
 
     def summary(self) -> dict:
-        """Means over runs, as plain floats."""
+        """Means over runs, as plain floats.
+
+        `vpt` and `vpt_seconds` average every run, a failed one's VPT ending at its failure. A failed
+        run has no error to average, so `gmre` (the geometric mean of the runs' errors) and
+        `final_error` average the runs that did not fail (NaN when none did), and `failed_runs`
+        counts the others.
+        """
+        failed = np.zeros(self.vpt.shape, bool) if self.failed is None else np.asarray(self.failed, bool)
+        completed = ~failed
+        nan = float("nan")
         return {
             "runs": int(self.vpt.shape[0]),
             "vpt": float(np.mean(self.vpt)),
             "vpt_seconds": float(np.mean(self.vpt_seconds)),
-            "gmre": float(np.exp(np.mean(np.log(self.gmre)))),
-            "final_error": float(np.mean(self.error[:, -1])),
+            "gmre": float(np.exp(np.mean(np.log(self.gmre[completed])))) if completed.any() else nan,
+            "final_error": float(np.mean(self.error[completed, -1])) if completed.any() else nan,
             "threshold": self.threshold,
-            "failed_runs": 0 if self.failed is None else int(np.sum(self.failed)),
+            "failed_runs": int(np.sum(failed)),
         }
 
 
@@ -329,8 +338,8 @@ def evaluate(
 
     The data are cast to the model's floating dtype; evaluate a float32-trained model in float64 by
     casting it first (in JAX's 64-bit mode). A rollout that fails is not an error: its samples from
-    the failure on are NaN and its VPT ends there (`Evaluation.failed`); the mean errors of
-    `summary()` are then NaN, and it counts such runs (`failed_runs`).
+    the failure on are NaN and its VPT ends there (`Evaluation.failed`); `summary()` counts such
+    runs (`failed_runs`) and averages its errors over the others.
 
     **Returns:** an `Evaluation` with the rollouts, per-run VPT, geometric-mean relative error and
     energies (for Lagrangian models).

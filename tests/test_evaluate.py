@@ -245,7 +245,12 @@ def test_a_rollout_that_fails_is_scored_from_the_failure_on():
     first = int(np.argmin(finite))  # the first sample of the failed run that is NaN
     assert 6 <= first and finite[:first].all() and np.isnan(result.x[1, first:]).all()
     assert result.vpt[0] == 1.0 and result.vpt[1] == pytest.approx((first - 1) / 10)
-    assert result.summary()["failed_runs"] == 1
+    summary = result.summary()
+    assert summary["failed_runs"] == 1 and summary["vpt"] == pytest.approx((1.0 + (first - 1) / 10) / 2)
+    # the failed run has no error to average: the errors are those of the run that completed, which
+    # follows the exact model's own simulation to the central difference's error of its start
+    assert np.isfinite(summary["gmre"]) and summary["gmre"] == pytest.approx(result.gmre[0])
+    assert summary["final_error"] == pytest.approx(result.error[0, -1]) and 0 <= summary["final_error"] < 1e-3
 
 
 def test_evaluate_a_wrong_model_has_a_short_vpt(pendulum_runs):
