@@ -4,6 +4,7 @@ evaluate does its job and writes its files."""
 
 import json
 import os
+import pathlib
 
 import numpy as np
 import pytest
@@ -99,6 +100,22 @@ def _fake_frames(path, scene="keycld/pendulum"):
         info={"scene": scene, "keypoint_names": ["tip"], "validation_runs": 1},
     )
     return frames.save(path)
+
+
+def test_evaluate_names_both_scenes_when_the_frames_do_not_fit_the_model(tmp_path, capsys):
+    # the shipped pendulum model (64 x 64 frames, one control) on frames of another scene and size:
+    # the error names what does not fit and both scenes, and writes nothing
+    shipped = pathlib.Path(__file__).resolve().parents[1] / "keyvision" / "demo" / "pendulum"
+    data = _fake_frames(tmp_path / "frames.npz", scene="keycld/cartpole")
+    status, _, err = _run(capsys, ["evaluate", "--model", shipped, "--data", data, "--out", tmp_path / "out"])
+    line = _error_line(err, "evaluate")
+    assert status == 2 and "pixels; the model takes 64 x 64" in line
+    assert "(frames of keycld/cartpole; the model was trained on keycld/pendulum)" in line
+    assert not (tmp_path / "out").exists()
+    # frames of the model's own scene: no scenes named
+    data = _fake_frames(tmp_path / "same.npz")
+    status, _, err = _run(capsys, ["evaluate", "--model", shipped, "--data", data, "--out", tmp_path / "out"])
+    assert status == 2 and "pixels; the model takes 64 x 64" in err and "trained on" not in err
 
 
 def test_train_needs_constraints_for_a_scene_not_of_keycld(tmp_path, capsys):

@@ -44,3 +44,12 @@ def load_model(directory: str, option: str, stage: str | None = None):
         return keyvision.load_model(directory, stage=stage)
     except (FileNotFoundError, ValueError) as error:
         raise CommandError(str(error)) from None
+
+
+def other_scene(frames, spec: dict) -> str:
+    """What to add to an error about frames that do not fit a model: the two scenes, where they differ
+    (" (frames of keycld/cartpole; the model was trained on keycld/pendulum)"), else nothing."""
+    seen, trained_on = frames.info.get("scene"), (spec.get("data") or {}).get("scene")
+    if not seen or not trained_on or seen == trained_on:
+        return ""
+    return f" (frames of {seen}; the model was trained on {trained_on})"

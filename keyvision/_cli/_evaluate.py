@@ -10,7 +10,7 @@ import numpy as np
 
 from cldyn._cli._common import CommandError, add_command, add_overwrite, output_directory, positive
 
-from ._common import frames_file, model_files
+from ._common import frames_file, model_files, other_scene
 
 _RESULTS = ("vpt.json", "mse.png", "strip.png", "prediction.gif")
 _STRIP_FRAMES = 10  # frames shown in the strip, evenly spaced over the run
@@ -252,11 +252,12 @@ def run(args: argparse.Namespace) -> int:
     if validation.image_size != (model.image_size, model.image_size):
         raise CommandError(
             f"--data: frames of {validation.image_size} pixels; the model takes {model.image_size} "
-            f"x {model.image_size}"
+            f"x {model.image_size}" + other_scene(frames, spec)
         )
     if validation.u.shape[-1] != spec["dynamics"]["num_inputs"]:
         raise CommandError(
             f"--data: {validation.u.shape[-1]} controls; the model takes {spec['dynamics']['num_inputs']}"
+            + other_scene(frames, spec)
         )
     if validation.num_frames < 3:
         raise CommandError(f"--data: runs of {validation.num_frames} frames; a prediction starts from 3")

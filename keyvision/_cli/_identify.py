@@ -14,7 +14,7 @@ from cldyn._cli._common import (
 )
 from cldyn._cli._identify import REPORT_FILES, add_effects_option
 
-from ._common import frames_file
+from ._common import frames_file, other_scene
 
 # what cldyn's Identification.save writes, and the effects in MuJoCo's units
 _RESULTS = (*REPORT_FILES, "effects.json", "image_error.png")
@@ -66,7 +66,7 @@ def run(args: argparse.Namespace) -> int:
     if frames.image_size != (model.image_size, model.image_size):
         raise CommandError(
             f"--data: frames of {frames.image_size} pixels; the model takes {model.image_size} x "
-            f"{model.image_size}"
+            f"{model.image_size}" + other_scene(frames, spec)
         )
     # the model's inputs are the actuators of the scene it was trained on: the frames' controls are
     # placed by name (a scene may drive fewer joints, as dm_control's stock acrobot does)
@@ -82,6 +82,7 @@ def run(args: argparse.Namespace) -> int:
     if inputs is None and frames.u.shape[-1] != spec["dynamics"]["num_inputs"]:
         raise CommandError(
             f"--data: {frames.u.shape[-1]} controls; the model takes {spec['dynamics']['num_inputs']}"
+            + other_scene(frames, spec)
         )
     meter = cldyn.TextProgressMeter() if args.progress else None
     refine = None
