@@ -183,18 +183,63 @@ def keycld_constraint(system: str) -> AbstractConstraint:
     raise ValueError(f"unknown KeyCLD system {system!r}; choose one of {', '.join(KEYCLD_SCENES)}")
 
 
+def constraint_entries(constraint: AbstractConstraint) -> list[dict]:
+    """A planar constraint of pivots, rods and rails as JSON entries (`model_from_spec`'s list form)."""
+    parts = constraint.constraints if isinstance(constraint, Stack) else (constraint,)
+    entries = []
+    for part in parts:
+        if getattr(part, "dim", 2) != 2:
+            raise ValueError(f"constraint entries are planar (dim=2); got {part!r}")
+        if isinstance(part, Anchor):
+            entries.append({"anchor": part.keypoint, "point": [float(v) for v in part.point]})
+        elif isinstance(part, Distance):
+            entries.append({"distance": [part.first, part.second]})
+        elif isinstance(part, FixedCoordinate):
+            entries.append({"fixed": part.keypoint, "axis": part.axis})
+        else:
+            raise ValueError(f"no JSON entry for a {type(part).__name__} constraint")
+    return entries
+
+
+def _from_entries(entries: list) -> AbstractConstraint:
+    parts: list[AbstractConstraint] = []
+    for entry in entries:
+        if not isinstance(entry, dict) or len(set(entry) & {"anchor", "distance", "fixed"}) != 1:
+            raise ValueError(
+                f"model spec: a constraint entry is one of anchor, distance, fixed; got {entry!r}"
+            )
+        try:
+            if "anchor" in entry:
+                parts.append(Anchor(int(entry["anchor"]), entry.get("point")))
+            elif "distance" in entry:
+                first, second = entry["distance"]
+                parts.append(Distance(int(first), int(second)))
+            else:
+                parts.append(FixedCoordinate(int(entry["fixed"]), axis=int(entry["axis"])))
+        except (KeyError, TypeError, ValueError) as error:
+            raise ValueError(f"model spec: constraint entry {entry!r}: {error}") from None
+    if not parts:
+        raise ValueError("model spec: an empty list of constraints")
+    return parts[0] if len(parts) == 1 else Stack(parts)
+
+
 def _keycld(spec: dict, key, mass: str, structured: bool = False):
     scene = spec.get("constraint")
-    scene = scene.removeprefix("keycld/") if isinstance(scene, str) else scene
-    if scene not in KEYCLD_SCENES:
-        raise ValueError(
-            f"model spec: {spec['kind']!r} needs a constraint, one of {', '.join(KEYCLD_SCENES)}; "
-            f"got {scene!r}"
-        )
+    if isinstance(scene, list) and not structured:
+        constraint = _from_entries(scene)
+    else:
+        scene = scene.removeprefix("keycld/") if isinstance(scene, str) else scene
+        if scene not in KEYCLD_SCENES:
+            raise ValueError(
+                f"model spec: {spec['kind']!r} needs a constraint, one of {', '.join(KEYCLD_SCENES)}"
+                + ("" if structured else " or a list of constraint entries")
+                + f"; got {scene!r}"
+            )
+        constraint = keycld_constraint(scene)
     return keycld_model(
         spec["size"],
         spec["num_inputs"],
-        keycld_constraint(scene),
+        constraint,
         key=key,
         width=spec["width"],
         depth=spec["depth"],
@@ -236,7 +281,11 @@ def model_from_spec(spec: dict, *, key: PRNGKeyArray):
       `"keycld-structured"` (coupled masses, `Gravity` and the scene's `keycld_joints`: no
       networks), `"nc"` (KeyCLD without constraints) or `"node2"` (`SecondOrderNeuralODE`)),
       `size` (`k`), `num_inputs` (`l`), `width` and `depth` of the networks, and for the KeyCLD
-      kinds `constraint`, a scene of `cldyn.KEYCLD_SCENES`.
+      kinds `constraint`, a scene of `cldyn.KEYCLD_SCENES`, or (but for `"keycld-structured"`,
+      whose joints are the scene's) a list of JSON entries, one per constraint:
+      `{"anchor": i, "point": [x, y]}` (`Anchor`), `{"distance": [i, j]}` (`Distance`) and
+      `{"fixed": i, "axis": a}` (`FixedCoordinate`), as `keyvision train` writes for a scene that is
+      not one of KeyCLD's (`keyvision.scene_constraint`).
     - `key`: a `jax.random` key for the initial parameters.
 
     **Returns:** the model. A spec that lacks an entry or names an unknown kind or scene raises a
@@ -248,6 +297,8 @@ def model_from_spec(spec: dict, *, key: PRNGKeyArray):
         spec = {"kind": "keycld", "size": 4, "num_inputs": 2, "width": 32, "depth": 2,
                 "constraint": "acrobot"}
         model = cldyn.model_from_spec(spec, key=jax.random.key(0))
+        spec["constraint"] = [{"anchor": 0, "point": [0.0, 0.5]}, {"distance": [0, 1]}]
+        chain = cldyn.model_from_spec(spec, key=jax.random.key(0))   # pivot at (0, 0.5)
         ```
     """
     if not isinstance(spec, dict):

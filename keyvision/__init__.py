@@ -67,6 +67,7 @@ from ._renderer import (
     Renderer as Renderer,
     RendererFC as RendererFC,
 )
+from ._structure import scene_constraint as scene_constraint
 from ._train import (
     Schedule as Schedule,
     TrainResult as TrainResult,

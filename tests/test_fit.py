@@ -553,3 +553,18 @@ def test_model_from_spec_builds_each_kind_and_names_what_is_wrong():
         cldyn.model_from_spec(base | {"kind": "keycld", "constraint": None}, key=key)
     with pytest.raises(ValueError, match="size must be a finite integer > 0"):
         cldyn.model_from_spec(base | {"kind": "nc", "size": 0}, key=key)
+    # a scene's own constraints as JSON entries (what keyvision train writes for a scene not KeyCLD's)
+    entries = [{"fixed": 0, "axis": 1}, {"distance": [0, 1]}]
+    listed = cldyn.model_from_spec(base | {"kind": "keycld", "constraint": entries}, key=key)
+    assert listed.constraint == cldyn.keycld_constraint("cartpole")
+    pivot = [{"anchor": 1, "point": [0.25, -0.5]}]
+    pivoted = cldyn.model_from_spec(base | {"kind": "keycld", "constraint": pivot}, key=key)
+    assert pivoted.constraint == cldyn.Anchor(1, (0.25, -0.5))
+    with pytest.raises(ValueError, match="needs a constraint"):  # its joints are the KeyCLD scenes'
+        cldyn.model_from_spec(base | {"kind": "keycld-structured", "constraint": entries}, key=key)
+    with pytest.raises(ValueError, match="one of anchor, distance, fixed"):
+        cldyn.model_from_spec(base | {"kind": "keycld", "constraint": [{"rod": [0, 1]}]}, key=key)
+    with pytest.raises(ValueError, match="constraint entry"):
+        cldyn.model_from_spec(base | {"kind": "keycld", "constraint": [{"fixed": 0}]}, key=key)
+    with pytest.raises(ValueError, match="does not apply to 2 keypoints"):
+        cldyn.model_from_spec(base | {"kind": "keycld", "constraint": [{"distance": [0, 2]}]}, key=key)

@@ -6,6 +6,7 @@ import json
 import os
 import pathlib
 
+import jax
 import numpy as np
 import pytest
 
@@ -310,6 +311,77 @@ def test_render_train_evaluate(tmp_path, capsys):
     expected = np.std(np.linalg.norm(keypoints, axis=-1)) * 16 / 2
     (drift,) = record["constraint_drift_px"]
     assert drift == pytest.approx(expected, rel=1e-3, abs=1e-6)
+
+
+# A chain of three links hanging from a pivot that the camera does not centre (the image centre is
+# 0.25 m to its right and 0.4 m below it), one motor at the pivot: not one of KeyCLD's scenes.
+CHAIN_LINKS = (0.5, 0.4, 0.3)
+CHAIN_PIVOT = (0.0, 1.6)
+CHAIN_SCENE = f"""
+<mujoco model="chain">
+  <option timestep="0.01" integrator="RK4"><flag contact="disable"/></option>
+  <worldbody>
+    <light pos="0 -1 4" dir="0 0 -1"/>
+    <camera name="fixed" pos="0.25 -4 1.2" zaxis="0 -1 0"/>
+    <body name="link1" pos="{CHAIN_PIVOT[0]} 0 {CHAIN_PIVOT[1]}">
+      <joint name="pivot" type="hinge" axis="0 1 0"/>
+      <geom type="capsule" fromto="0 0 0 0 0 -{CHAIN_LINKS[0]}" size="0.04" mass="1" rgba="1 0 0 1"/>
+      <body name="link2" pos="0 0 -{CHAIN_LINKS[0]}">
+        <joint name="knee" type="hinge" axis="0 1 0"/>
+        <geom type="capsule" fromto="0 0 0 0 0 -{CHAIN_LINKS[1]}" size="0.04" mass="0.8" rgba="0 1 0 1"/>
+        <body name="link3" pos="0 0 -{CHAIN_LINKS[1]}">
+          <joint name="ankle" type="hinge" axis="0 1 0"/>
+          <geom type="capsule" fromto="0 0 0 0 0 -{CHAIN_LINKS[2]}" size="0.04" mass="0.5" rgba="0 0 1 1"/>
+        </body>
+      </body>
+    </body>
+  </worldbody>
+  <actuator><motor joint="pivot" gear="1"/></actuator>
+</mujoco>
+"""
+
+
+@pytest.mark.mujoco
+def test_train_reads_the_constraints_of_a_scene_that_is_not_keyclds(tmp_path, capsys):
+    # the chain's pivot, seen off the image centre, and its two rods: read from the MJCF through the
+    # camera, checked against the scene's geometry in closed form
+    pytest.importorskip("mujoco")
+    import keyvision
+
+    xml, data, model = tmp_path / "chain.xml", tmp_path / "data", tmp_path / "model"
+    xml.write_text(CHAIN_SCENE)
+    render = ["render", "--scene", xml, "--out", data, "--runs", 3, "--frames", 6, "--size", 16]
+    render += ["--validation-runs", 1, "--workers", 1, "--no-cache", "--no-progress"]
+    status, _, err = _run(capsys, render)
+    assert status == 0, err
+    frames = keyvision.Frames.load(data / "frames.npz")
+    # MuJoCo's camera (fovy 45 degrees) 4 m from the plane, centred on (0.25, 1.2): the image frame's
+    # unit is 4 tan(22.5 degrees) metres, and the pivot is seen at (-0.25, 0.4) m from the centre
+    metres_per_unit = 4 * np.tan(np.radians(22.5))
+    pivot = (np.array(CHAIN_PIVOT) - [0.25, 1.2]) / metres_per_unit
+    constraint = keyvision.scene_constraint(frames)
+    assert constraint.constraints[1:] == (cldyn.Distance(0, 1), cldyn.Distance(1, 2))
+    assert isinstance(constraint.constraints[0], cldyn.Anchor) and constraint.constraints[0].keypoint == 0
+    np.testing.assert_allclose(constraint.constraints[0].point, pivot, atol=1e-9)
+    # along the runs, the true keypoints seen in the image keep the links' lengths in image units
+    seen = frames.camera.to_image(frames.extras["keypoints"].reshape(-1, 3, 2)).reshape(-1, 6)
+    values = np.asarray(jax.vmap(constraint)(jax.numpy.asarray(seen)))
+    lengths = np.array(CHAIN_LINKS) / metres_per_unit
+    np.testing.assert_allclose(values, np.broadcast_to(lengths, values.shape), rtol=1e-6)
+
+    train = ["train", "--data", data, "--out", model, "--width", 4, "--dynamics-width", 8, "--candidates", 1]
+    train += ["--autoencoder-steps", 1, "--dynamics-steps", 1, "--joint-steps", 0, "--refit-steps", 0]
+    status, _, err = _run(capsys, train + ["--no-progress"])
+    assert status == 0, err
+    spec = json.loads((model / "keyvision.json").read_text())
+    assert spec["dynamics"]["constraint"][1:] == [{"distance": [0, 1]}, {"distance": [1, 2]}]
+    np.testing.assert_allclose(spec["dynamics"]["constraint"][0]["point"], pivot, atol=1e-9)
+    trained, _ = keyvision.load_model(model)
+    assert trained.dynamics.constraint == constraint
+    # the structured kind's joints are KeyCLD's scenes': refused, naming the way out
+    status, _, err = _run(capsys, train + ["--model", "keycld-structured", "--overwrite"])
+    line = _error_line(err, "train")
+    assert status == 2 and "keycld-structured" in line and "--model keycld" in line
 
 
 @pytest.mark.mujoco

@@ -8,6 +8,7 @@ import pytest
 
 pytest.importorskip("mujoco")
 
+import cldyn
 import keyvision
 import keyvision._render as render_module
 
@@ -61,6 +62,12 @@ def marker_frames():
     return keyvision.render(
         MARKER_SCENE, camera="oblique", protocol=SMALL, keypoints=["marker"], cache=False, workers=1
     )
+
+
+def test_scene_constraint_refuses_a_camera_that_sees_the_plane_in_perspective(marker_frames):
+    # the oblique camera's map is projective: a rod's length in the plane is no length in the image
+    with pytest.raises(ValueError, match="perspective"):
+        keyvision.scene_constraint(marker_frames)
 
 
 def test_keypoints_follow_the_joints_in_closed_form(marker_frames):
@@ -151,6 +158,8 @@ def test_keycld_pendulum_follows_the_papers_protocol():
     assert np.sum(controls[:, 0] == 0) == 2
     train, validation = frames.split()
     assert (train.num_runs, validation.num_runs) == (8, 2)
+    # the scene's constraints read through the camera are KeyCLD's (the paper's figure 7)
+    assert keyvision.scene_constraint(frames) == cldyn.keycld_constraint("pendulum")
 
 
 @pytest.mark.slow
@@ -169,6 +178,7 @@ def test_keycld_rk4_scenes_and_their_keypoints(scene):
         anchor = first
     np.testing.assert_allclose(np.linalg.norm(second - anchor, axis=-1), 1.0, atol=EXACT)
     assert len(frames.info["keypoint_names"]) == 2
+    assert keyvision.scene_constraint(frames) == cldyn.keycld_constraint(scene)
 
 
 # -- the cache, without rendering -------------------------------------------------------------------

@@ -56,7 +56,10 @@ def register(subparsers) -> None:
     parser.add_argument("--out", required=True, help="output directory")
     parser.add_argument("--model", choices=MODEL_KINDS, default="keycld", help="the dynamics model")
     parser.add_argument(
-        "--constraint", choices=KEYCLD_SCENES, help="KeyCLD's constraints (default: the frames' KeyCLD scene)"
+        "--constraint",
+        choices=KEYCLD_SCENES,
+        help="KeyCLD's constraints (default: the frames' KeyCLD scene; for another scene, its own "
+        "constraints seen in the image, keyvision.scene_constraint)",
     )
     parser.add_argument("--width", type=count, default=32, help="width of both U-Nets (32 in the paper)")
     parser.add_argument(
@@ -237,9 +240,21 @@ def _model_spec(args: argparse.Namespace, frames) -> dict:
     scene = str(frames.info.get("scene", ""))
     constraint = args.constraint or (scene.removeprefix("keycld/") if scene.startswith("keycld/") else None)
     if args.model.startswith("keycld") and constraint is None:
-        raise CommandError(
-            f"the frames' scene {scene!r} is not a KeyCLD scene: give --constraint or --model nc / node2"
-        )
+        if args.model == "keycld-structured":
+            raise CommandError(
+                f"--model keycld-structured: its joints are those of KeyCLD's scenes; the frames' scene "
+                f"{scene!r} is not one (give --constraint, or --model keycld / keycld-coupled)"
+            )
+        import keyvision
+        from cldyn._keycld import constraint_entries
+
+        try:  # the scene's own pivots, rods and rails, seen in the image
+            constraint = constraint_entries(keyvision.scene_constraint(frames))
+        except ValueError as error:
+            raise CommandError(
+                f"the frames' scene {scene!r} is not a KeyCLD scene and its constraints cannot be read "
+                f"({error}): give --constraint or --model nc / node2"
+            ) from None
     if args.rigid_steps and not args.model.startswith("keycld"):
         raise CommandError(f"--rigid-steps: --model {args.model} has no constraints to keep rigid")
     if args.candidates > 1 and not args.model.startswith("keycld"):

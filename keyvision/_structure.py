@@ -1,0 +1,139 @@
+"""The constraints of any rendered planar scene on its keypoints, in the image frame: what KeyCLD's
+dynamics need to learn a mechanism that is not one of the paper's three scenes."""
+
+import numpy as np
+
+import cldyn
+from cldyn._misc import optional_import
+
+from ._data import Frames
+
+_AFFINE_TOL = 1e-9  # relative: a homography whose last row is (0, 0, c) to this is affine
+_RIGID_TOL = 1e-4  # relative: the scene's constraint values along a run of true keypoints
+
+
+def scene_constraint(frames: Frames) -> cldyn.AbstractConstraint:
+    """The holonomic constraints of the frames' scene on its keypoints, in the image frame.
+
+    `cldyn.mujoco.from_mjcf` reads the constraints of the scene's MJCF (`frames.info["mjcf_xml"]`)
+    in the plane of motion, in metres; the camera's map (`frames.camera`) carries them to the image
+    frame, in which keyvision's keypoints live. A pivot becomes the image point it is seen at
+    (`cldyn.Anchor(i, point)`), a rod stays a rod (`cldyn.Distance`) and a rail along a plane axis
+    becomes a rail along the image axis it is seen along (`cldyn.FixedCoordinate`). For KeyCLD's
+    scenes this is `cldyn.keycld_constraint` (the paper's figure 7); for any other planar chain of
+    hinges and slides it is the same structure, read from the scene, so `keyvision train` can learn
+    its dynamics from the frames without naming a constraint.
+
+    The map must be a similarity (a camera that looks straight at the plane, as keyvision's scenes
+    do): distances in the plane are then distances in the image. The constraints are checked on the
+    frames' true keypoints (`frames.extras["keypoints"]`), which must keep them along every run.
+
+    **Arguments:**
+
+    - `frames`: rendered frames (`keyvision.render`), with their MJCF, camera and true keypoints.
+
+    **Returns:** a `cldyn.AbstractConstraint` on the `2K` image-frame coordinates of the `K`
+    keypoints (one constraint alone, or a `cldyn.Stack`). A scene whose constraints are of another
+    kind (a slide on a moving body, a rail at an angle to the image axes), whose keypoints the
+    constraints do not hold on, or a camera map that is not a similarity raises a `ValueError` that
+    says which.
+
+    !!! example
+
+        ```python
+        frames = keyvision.Frames.load("data/frames.npz")     # frames of any planar MJCF
+        constraint = keyvision.scene_constraint(frames)       # e.g. Stack([Anchor(0, (0.1, 0.2)), ...])
+        model = cldyn.keycld_model(2 * len(frames.info["keypoint_names"]), frames.u.shape[-1],
+                                   constraint, key=jax.random.key(0))
+        ```
+    """
+    if not isinstance(frames, Frames):
+        raise TypeError(f"scene_constraint: frames must be keyvision.Frames, got {type(frames).__name__}")
+    xml = frames.info.get("mjcf_xml")
+    if not xml:
+        raise ValueError(
+            "scene_constraint: the frames carry no MJCF (frames.info['mjcf_xml']); render them again"
+        )
+    mujoco = optional_import("cldyn.mujoco", purpose="keyvision.scene_constraint")
+    plane = mujoco.from_mjcf(xml).system.constraint
+    names = list(frames.info.get("keypoint_names", []))
+    if plane is None:
+        raise ValueError("scene_constraint: the scene has no constraints on its keypoints")
+    parts = plane.constraints if isinstance(plane, cldyn.Stack) else (plane,)
+    linear = _affine(frames.camera)
+    mapped = [_to_image(part, linear, frames.camera) for part in parts]
+    _check_rigid(plane, parts, frames, names)
+    return mapped[0] if len(mapped) == 1 else cldyn.Stack(mapped)
+
+
+def _affine(camera) -> np.ndarray:
+    """`A` of plane = A @ image + b, checked to be a similarity."""
+    h = np.asarray(camera.homography, dtype=float)
+    if np.max(np.abs(h[2, :2])) > _AFFINE_TOL * abs(h[2, 2]):
+        raise ValueError(
+            "scene_constraint: the camera sees the plane in perspective (its homography is not affine); "
+            "distances in the plane are not distances in the image"
+        )
+    linear = h[:2, :2] / h[2, 2]
+    gram = linear.T @ linear
+    if not np.allclose(gram, gram[0, 0] * np.eye(2), rtol=0, atol=1e-9 * abs(gram[0, 0])):
+        raise ValueError(
+            "scene_constraint: the camera stretches the plane unevenly (its map is not a similarity); "
+            "distances in the plane are not distances in the image"
+        )
+    return linear
+
+
+def _to_image(part, linear: np.ndarray, camera) -> cldyn.AbstractConstraint:
+    if isinstance(part, cldyn.Distance):
+        return cldyn.Distance(part.first, part.second)
+    if isinstance(part, cldyn.Anchor):
+        point = camera.to_image(np.asarray(part.point, dtype=float))
+        scale = float(np.max(np.abs(point))) + 1.0
+        point = np.where(np.abs(point) < 1e-12 * scale, 0.0, point)  # the image centre, not 1e-17
+        return cldyn.Anchor(part.keypoint, point)
+    if isinstance(part, cldyn.FixedCoordinate):
+        row = np.abs(linear[part.axis])  # the fixed plane coordinate in terms of the image coordinates
+        seen = np.flatnonzero(row > 1e-9 * row.max())
+        if len(seen) != 1:
+            raise ValueError(
+                "scene_constraint: a rail along a plane axis that the camera sees at an angle to the image "
+                "axes; only rails along an image axis are expressible (cldyn.FixedCoordinate)"
+            )
+        return cldyn.FixedCoordinate(part.keypoint, axis=int(seen[0]))
+    raise ValueError(
+        f"scene_constraint: the scene has a constraint of kind {type(part).__name__} (a slide on a "
+        "moving body, or keypoints tied to a body's frame); only pivots, rods and rails along an axis "
+        "(cldyn.Anchor, cldyn.Distance, cldyn.FixedCoordinate) are carried to the image"
+    )
+
+
+def _keypoints_of(part) -> tuple[int, ...]:
+    if isinstance(part, cldyn.Distance):
+        return (part.first, part.second)
+    return (part.keypoint,)
+
+
+def _check_rigid(plane, parts, frames: Frames, names: list) -> None:
+    """The scene's constraints are on the frames' keypoints and hold on them: constant along every run."""
+    import jax
+
+    keypoints = frames.extras.get("keypoints")
+    if keypoints is None:
+        raise ValueError("scene_constraint: the frames carry no true keypoints (extras['keypoints'])")
+    keypoints = np.asarray(keypoints, dtype=float)
+    used = max(i for part in parts for i in _keypoints_of(part))
+    if 2 * (used + 1) > keypoints.shape[-1]:
+        raise ValueError(
+            f"scene_constraint: the scene's constraints name keypoint {used}; the frames have "
+            f"{keypoints.shape[-1] // 2} ({', '.join(names)})"
+        )
+    flat = keypoints.reshape(-1, keypoints.shape[-1])
+    values = np.asarray(jax.vmap(plane)(jax.numpy.asarray(flat))).reshape(*keypoints.shape[:2], -1)
+    spread = np.max(np.abs(values - values[:, :1]), axis=(0, 1))
+    if np.any(spread > _RIGID_TOL * (np.max(np.abs(values)) + np.max(np.abs(flat)))):
+        raise ValueError(
+            "scene_constraint: the scene's constraints do not hold on the frames' keypoints "
+            f"({', '.join(names)}): their values vary by up to {np.max(spread):.3g} along a run. "
+            "Keypoints named by sites must be the points that the scene's joints tie together"
+        )
