@@ -1,6 +1,8 @@
 """KeyCLD from images: render, train and evaluate on the KeyCLD scenes; VPT, wall time, images/s.
 
-For each scene: `keyvision render` (the paper's protocol, or fewer runs), `keyvision train` (the stages
+For each scene (a KeyCLD scene's name, or an MJCF file: a scene that is not KeyCLD's, whose
+constraints `keyvision train` reads from it, `keyvision.scene_constraint`; its row is named after the
+file): `keyvision render` (the paper's protocol, or fewer runs), `keyvision train` (the stages
 of `keyvision.train` with the sizes and steps given here; the defaults are the CPU recipe of
 docs/images.md) and `keyvision evaluate` (VPT over the validation runs, the autoencoder's ceiling, the
 error over time, a frame strip and a GIF). `--model SCENE=DIR` evaluates a model trained elsewhere
@@ -15,6 +17,7 @@ JSON.
 
     python benchmarks/vision.py                       # the three scenes, the CPU recipe
     python benchmarks/vision.py --scenes pendulum --model pendulum=runs/pend
+    python benchmarks/vision.py --scenes benchmarks/mechanisms/chain3.xml --rounds 1
 """
 
 import argparse
@@ -100,11 +103,18 @@ def _images_per_second(stages: dict, schedule: dict) -> float | None:
     return frames / seconds if seconds else None
 
 
-def scene(name: str, args) -> dict:
+def _scene_name(scene: str) -> str:
+    """A row's name: the KeyCLD scene's, or an MJCF file's stem."""
+    return pathlib.Path(scene).stem if scene.endswith(".xml") else scene
+
+
+def scene(source: str, args) -> dict:
+    name = _scene_name(source)
     out = pathlib.Path(args.out) / name
     data, model, evaluation = out / "data", out / "model", out / "evaluate"
     if not (data / "frames.npz").is_file():
-        _cli("render", "--scene", f"keycld/{name}", "--out", data, "--runs", args.runs)
+        mjcf = source if source.endswith(".xml") else f"keycld/{name}"
+        _cli("render", "--scene", mjcf, "--out", data, "--runs", args.runs)
     given = dict(item.split("=", 1) for item in args.model).get(name)
     if given is not None:
         model = pathlib.Path(given)
@@ -133,7 +143,7 @@ def scene(name: str, args) -> dict:
         "model": str(model),
         "vpt": vpt["vpt"],
         "autoencoder": vpt.get("autoencoder"),
-        "paper_vpt": PAPER_VPT[name],
+        "paper_vpt": PAPER_VPT.get(name),
         "keypoint_tracking_r2": vpt.get("keypoint_tracking_r2"),
         "keypoint_error_px": vpt.get("keypoint_error_px"),
         "constraint_drift_px": vpt.get("constraint_drift_px"),
@@ -172,7 +182,8 @@ def main() -> None:
         note = earlier.get("note", "") if note is None else note
         kept = {row["scene"]: row for row in earlier.get("scenes", [])}
         kept.update({row["scene"]: row for row in rows})
-        rows = sorted(kept.values(), key=lambda row: list(PAPER_VPT).index(row["scene"]))
+        order = [*PAPER_VPT, *sorted(set(kept) - set(PAPER_VPT))]  # KeyCLD's scenes first
+        rows = sorted(kept.values(), key=lambda row: order.index(row["scene"]))
     result = {"machine": machine(), "device": str(jax.devices()[0]), "scenes": rows, "note": note or ""}
     lines = [
         "# KeyCLD from images",
@@ -197,7 +208,8 @@ def main() -> None:
         vpt, size = row["vpt"], row["image_size"]
         cells = [row["scene"], f"{vpt['mean']:.3f}", f"{vpt['median']:.3f}", f"{vpt['std']:.3f}"]
         ceiling = (row["autoencoder"] or {}).get("vpt", {}).get("mean")
-        cells += [f"{row['paper_vpt']:.2f}", "-" if ceiling is None else f"{ceiling:.3f}"]
+        paper = "-" if row["paper_vpt"] is None else f"{row['paper_vpt']:.2f}"
+        cells += [paper, "-" if ceiling is None else f"{ceiling:.3f}"]
         error = row["keypoint_error_px"]
         cells += ["-" if r2 is None else f"{r2:.3f}"]
         drift = row["constraint_drift_px"]
