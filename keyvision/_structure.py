@@ -1,6 +1,7 @@
 """The constraints of any rendered planar scene on its keypoints, in the image frame: what KeyCLD's
 dynamics need to learn a mechanism that is not one of the paper's three scenes."""
 
+import jax
 import numpy as np
 
 import cldyn
@@ -116,8 +117,6 @@ def _keypoints_of(part) -> tuple[int, ...]:
 
 def _check_rigid(plane, parts, frames: Frames, names: list) -> None:
     """The scene's constraints are on the frames' keypoints and hold on them: constant along every run."""
-    import jax
-
     keypoints = frames.extras.get("keypoints")
     if keypoints is None:
         raise ValueError("scene_constraint: the frames carry no true keypoints (extras['keypoints'])")
