@@ -123,8 +123,21 @@ def _case(scene: str, joints: dict | None, seed: int, args, *, stock: bool = Fal
         "refine_steps": refine.joint_steps if refine is not None else 0,
         "joules_per_unit": result.joules_per_unit,
         "energy_spread": result.energy_spread,
+        "balance": list(result.balance),
         "seconds": round(time.perf_counter() - started, 1),
     }
+
+
+def _balance(row: dict) -> str:
+    """The energy balance's damping per joint, for the table."""
+    return (
+        ", ".join(
+            f"{b['where']} {b['value']:.3g} [{b['ci'][0]:.3g}, {b['ci'][1]:.3g}]"
+            + ("*" if b["detected"] else "")
+            for b in row.get("balance", [])
+        )
+        or "-"
+    )
 
 
 def _frames(row: dict) -> int:
@@ -260,9 +273,14 @@ def main() -> None:
         "0.5 s), rendered with one effect injected, identified against the scene's model learnt from images "
         "(`benchmarks/vision_identify.py`). Values in MuJoCo's units (`keyvision.identify`'s conversion).",
         "",
+        "The last column is `cldyn.energy_balance` on the same keypoints and model (reported by "
+        "`keyvision.identify` beside its detections, not added to the model): the viscous damping each "
+        "joint lacks by the balance of energy, with its 95% interval, in MuJoCo's units; `*` where the "
+        "interval lies above zero (rows from before the balance have `-`).",
+        "",
         "| scene | injected | outcome | found | value (error) | held-out VPT before -> after "
-        "| image MSE before -> after |",
-        "| --- | --- | --- | --- | --- | --- | --- |",
+        "| image MSE before -> after | energy balance |",
+        "| --- | --- | --- | --- | --- | --- | --- | --- |",
     ]
     for row in rows:
         top = row["effects"][0] if row["effects"] else None
@@ -288,7 +306,7 @@ def main() -> None:
         outcome = row["outcome"] + (f" ({'; '.join(row['adequacy'])})" if row.get("adequacy") else "")
         lines.append(
             f"| {row['scene']} | {row['attribute']} {row['truth']} at {row['joint']}{_length(row)} "
-            f"| {outcome} | {found} | {value} | {vpt} | {mse} |"
+            f"| {outcome} | {found} | {value} | {vpt} | {mse} | {_balance(row)} |"
         )
     # what identify names when the residual asks for an effect of the forbidden sign: the model's own error
     labels = [f"{r['scene']}, {r['attribute']} {r['truth']} at {r['joint']}{_length(r)}" for r in rows]
@@ -314,6 +332,12 @@ def main() -> None:
             quiet = sum(1 for n in mine if not n["effects"])
             outcomes = ", ".join(n["outcome"] for n in mine)
             length = f" ({_length(mine[0]).lstrip(', ')})" if _length(mine[0]) else ""
+            balanced = [n for n in mine if "balance" in n]
+            if balanced:  # the energy balance's false detections, where it ran
+                clean = sum(1 for n in balanced if not any(b["detected"] for b in n["balance"]))
+                outcomes += (
+                    f"; the energy balance: no joint's interval above zero in {clean} of {len(balanced)}"
+                )
             lines.append(f"- {scene}{length}: nothing detected in {quiet} of {len(mine)} seeds ({outcomes})")
     write("vision_identify", result, "\n".join(lines) + "\n")
 

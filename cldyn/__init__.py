@@ -82,6 +82,7 @@ from ._identify import (
     Candidate as Candidate,
     Criteria as Criteria,
     Detection as Detection,
+    EnergyBalance as EnergyBalance,
     Errors as Errors,
     Identification as Identification,
     JointArmatureEffect as JointArmatureEffect,
@@ -94,6 +95,7 @@ from ._identify import (
     Smoothing as Smoothing,
     SmoothingChoice as SmoothingChoice,
     augment as augment,
+    energy_balance as energy_balance,
     estimate_noise as estimate_noise,
     identify as identify,
 )

@@ -328,6 +328,11 @@ class ImageIdentification:
       VPT `threshold` and `dt`; `None` without validation runs.
     - `refined`: with `refine`, the model after the joint stage with the image losses (float32);
       `None` otherwise.
+    - `balance`: with `balance`, one dict per joint from `cldyn.energy_balance` on the same keypoints
+      and model: `where`, the viscous damping the model lacks there by the balance of energy (`value`,
+      `ci`: MuJoCo's units; `value_model`, `ci_model`: the model's) and `detected` (its interval above
+      zero). A check beside the detections, which errors of the learnt inertia and potential do not
+      bias; it adds nothing to `model`.
     """
 
     identification: object
@@ -339,6 +344,7 @@ class ImageIdentification:
     images: dict | None = None
     energy_spread: float = 1.0
     refined: object = None
+    balance: tuple[dict, ...] = ()
 
 
 def _joules_at(where: str, scale: dict) -> float:
@@ -359,7 +365,7 @@ def _convert(name: str, kind: str, value: float, joules: float, metres: float) -
 
 
 def identify(
-    model, frames, *, inputs=None, refine=None, progress_meter=None, **options
+    model, frames, *, inputs=None, refine=None, balance=True, progress_meter=None, **options
 ) -> ImageIdentification:
     """Find the effects that a KeyCLD model learnt from images is missing, from frames of the system.
 
@@ -388,6 +394,12 @@ def identify(
       jointly with the image losses (stage (c) of `keyvision.train`: its `joint_*`, `window` and weight
       fields) on the identified runs' frames; its other stages are not run. `None` (default): the
       dynamics refit of `cldyn.identify` only.
+    - `balance`: also measure each joint's missing viscous damping by `cldyn.energy_balance` on the
+      same keypoints (instrumental variables, the same smoothing), converted as the detections are.
+      `cldyn.identify`'s force residual carries the learnt model's errors of inertia and potential at
+      every sample, which can be larger than a damping's force; the balance cannot be fooled by
+      them. It is reported beside the detections (`ImageIdentification.balance`), not added to the
+      model.
     - `progress_meter`: a `cldyn.AbstractProgressMeter`.
     - `options`: passed on to `cldyn.identify` (`effects`, `criteria`, `seed`, ...). The learnt
       potential is held fixed in the refit (`refit_potential=False`) unless given otherwise.
@@ -448,14 +460,46 @@ def identify(
                 "ci_model": tuple(float(c) for c in d.ci),
             }
         )
+    balanced = ()
+    if balance:
+        seed = options.get("seed", 0)
+        found = cldyn.energy_balance(dynamics, data, joint_coordinates=structure.coordinates, seed=seed)
+        balanced = tuple(
+            _balance_entry(found, j, structure, scale, metres) for j in range(len(found.joint_names))
+        )
     augmented = KeyCLD(model.estimator, result.model, model.renderer)
     refined = None
     if refine is not None:
         refined = _refine(augmented, ImageSequences.from_frames(measured), refine, options.get("seed", 0))
     images = _image_errors(model, augmented, held_out, refined) if held_out.num_runs else None
     return ImageIdentification(
-        result, tuple(effects), structure, joules, metres, augmented, images, scale["spread"], refined
+        result,
+        tuple(effects),
+        structure,
+        joules,
+        metres,
+        augmented,
+        images,
+        scale["spread"],
+        refined,
+        balanced,
     )
+
+
+def _balance_entry(found, j: int, structure: JointStructure, scale: dict, metres: float) -> dict:
+    """Joint `j` of a `cldyn.EnergyBalance`, in the model's units and converted as a detected damping."""
+    where = found.joint_names[j]
+    kind = structure.kinds[structure.names.index(where)]
+    at = _joules_at(where, scale)
+    convert = lambda v: _convert("joint_damping", kind, float(v), at, metres)  # noqa: E731
+    return {
+        "where": where,
+        "value": convert(found.damping[j]),
+        "ci": tuple(convert(c) for c in found.interval[j]),
+        "value_model": float(found.damping[j]),
+        "ci_model": tuple(float(c) for c in found.interval[j]),
+        "detected": where in found.detected,
+    }
 
 
 def scene_actuators(scene: str) -> tuple[str, ...]:

@@ -290,6 +290,11 @@ def test_render_train_evaluate(tmp_path, capsys):
     found = json.loads((tmp_path / "id" / "effects.json").read_text())
     assert found["joints"] == {"hinge": "hinge"} and found["outcome"] in out
     assert (tmp_path / "id" / "report.md").is_file()
+    # the energy balance beside the detections: the hinge's missing damping, in N m s and in model units
+    (balance,) = found["energy_balance"]
+    assert balance["where"] == "hinge" and balance["ci"][0] <= balance["value"] <= balance["ci"][1]
+    assert balance["value"] / balance["value_model"] == pytest.approx(found["joules_per_unit"], rel=1e-6)
+    assert "energy balance" in out
     assert found["images"]["runs"] == 1 and 0 <= found["images"]["before"]["vpt"]["mean"] <= 1
     # the image error frame by frame: its mean is the MSE over all frames; plotted in image_error.png
     for name in ("before", "after"):

@@ -11,10 +11,12 @@ as cldyn terms, the model is refitted, and the loop repeats until nothing passes
 Layout: `base` (the effect interface), one module per effect, `library` (the default effects),
 `smoothing` and `choice` (its settings, chosen from the data), `residual` (the weak form), `adequacy`
 (what the data can support), `limits` (samples at joint limits), `regression`, `refit`, `errors`
-(before/after), `identify` (the loop), `result` and `report`.
+(before/after), `identify` (the loop), `result` and `report`;
+`balance` (the energy balance, a check beside the loop that conservative model errors cannot fake).
 """
 
 from .actuator_gain import ActuatorGainEffect as ActuatorGainEffect
+from .balance import EnergyBalance as EnergyBalance, energy_balance as energy_balance
 from .base import AbstractEffect as AbstractEffect, Candidate as Candidate, Context as Context
 from .choice import estimate_noise as estimate_noise
 from .identify import identify as identify

@@ -113,6 +113,7 @@ def run(args: argparse.Namespace) -> int:
         "metres_per_unit": result.metres_per_unit,
         "energy_spread": result.energy_spread,
         "images": result.images,
+        "energy_balance": list(result.balance),
     }
     atomic_write(out / "effects.json", json.dumps(record, indent=1))
     if result.images is not None:
@@ -134,9 +135,13 @@ def run(args: argparse.Namespace) -> int:
         if "refined" in result.images:
             refined = result.images["refined"]
             images += (
-                f" (refined with the image losses: VPT {refined['vpt']['mean']:.3f}, "
-                f"MSE {_mse(refined)})"
+                f" (refined with the image losses: VPT {refined['vpt']['mean']:.3f}, MSE {_mse(refined)})"
             )
+    balance = "; ".join(
+        f"{b['where']} {b['value']:.3g} [{b['ci'][0]:.3g}, {b['ci'][1]:.3g}]" for b in result.balance
+    )
+    if balance:
+        images += f"; the energy balance's missing damping: {balance} (MuJoCo's units)"
     print(
         f"{result.identification.outcome}{': ' + found if found else ''} (MuJoCo's units); held-out rollout "
         f"error over 1 s {before.rollout_rmse_1s:.4g} -> {after.rollout_rmse_1s:.4g} (image units){images}; "
