@@ -99,9 +99,13 @@ def _case(scene: str, joints: dict | None, seed: int, args, *, stock: bool = Fal
         refine = joint_stage(spec.get("schedule") or {}, args.refine_steps)
     # what a row is kept by, refused or not: its model, its runs' length and its camera
     row = {"model": repo_path(args.models[scene]), "frames": args.frames, "supersample": supersample}
+    if args.add_balance:
+        row["add_balance"] = True
     started = time.perf_counter()
     try:
-        result = keyvision.identify(model, frames, inputs=inputs, refine=refine, seed=seed)
+        result = keyvision.identify(
+            model, frames, inputs=inputs, refine=refine, seed=seed, add_balance=args.add_balance
+        )
     except ValueError as error:  # e.g. keypoints that break the constraints: reported, not fatal
         return {
             **row,
@@ -152,6 +156,8 @@ def _length(row: dict) -> str:
         label += f", model {pathlib.Path(_model(row)).name}"
     if row.get("supersample", 1) > 1:
         label += f", camera {row['supersample']} x {row['supersample']}"
+    if row.get("add_balance"):
+        label += ", the balance's damping added"
     return label
 
 
@@ -186,6 +192,12 @@ def main() -> None:
         default=0,
         help="then train each case's model jointly with the image losses (keyvision.identify(refine=)) "
         "this many steps of its joint stage, and score it beside",
+    )
+    parser.add_argument(
+        "--add-balance",
+        action="store_true",
+        help="add the energy balance's damping to the model where identify detected none "
+        "(keyvision.identify(add_balance=True)); such rows are kept beside the others",
     )
     parser.add_argument(
         "--attributes", nargs="+", help="only the cases that inject these MJCF attributes (all by default)"
@@ -239,10 +251,18 @@ def main() -> None:
         for seed in range(args.seeds):
             negatives.append({"scene": scene, "seed": seed, **_case(scene, None, seed, args)})
     previous = RESULTS / "vision_identify.json"
-    case = lambda r: (r["scene"], r["joint"], r["attribute"], r["truth"], _frames(r), _model(r))
+    case = lambda r: (  # noqa: E731
+        r["scene"],
+        r["joint"],
+        r["attribute"],
+        r["truth"],
+        _frames(r),
+        _model(r),
+        r.get("add_balance", False),
+    )
     if previous.is_file():  # the cases and negative controls not run this time keep their previous rows
         earlier = json.loads(previous.read_text())
-        negative = lambda n: (n["scene"], n["seed"], _frames(n), _model(n))
+        negative = lambda n: (n["scene"], n["seed"], _frames(n), _model(n), n.get("add_balance", False))
         ran = {case(r) for r in rows} | {negative(n) for n in negatives}
         rows = [r for r in earlier.get("cases", []) if case(r) not in ran] + rows
         negatives = [n for n in earlier.get("negatives", []) if negative(n) not in ran] + negatives
@@ -327,8 +347,15 @@ def main() -> None:
         lines += [f"- {label}: {named}" for label, named in asks]
     lines += ["", "Effect-free data (negative control):", ""]
     for scene in scenes:
-        for frames, model in sorted({(_frames(n), _model(n)) for n in negatives if n["scene"] == scene}):
-            mine = [n for n in negatives if (n["scene"], _frames(n), _model(n)) == (scene, frames, model)]
+        groups = {
+            (_frames(n), _model(n), n.get("add_balance", False)) for n in negatives if n["scene"] == scene
+        }
+        for group in sorted(groups):
+            mine = [
+                n
+                for n in negatives
+                if n["scene"] == scene and (_frames(n), _model(n), n.get("add_balance", False)) == group
+            ]
             quiet = sum(1 for n in mine if not n["effects"])
             outcomes = ", ".join(n["outcome"] for n in mine)
             length = f" ({_length(mine[0]).lstrip(', ')})" if _length(mine[0]) else ""

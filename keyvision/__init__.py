@@ -13,6 +13,7 @@ from ._control import (
     image_target as image_target,
     swing_up as swing_up,
 )
+from ._controls import scene_actuators as scene_actuators
 from ._data import (
     Frames as Frames,
     ImageSequences as ImageSequences,
@@ -44,7 +45,6 @@ from ._identify import (
     JointStructure as JointStructure,
     identify as identify,
     joint_structure as joint_structure,
-    scene_actuators as scene_actuators,
 )
 from ._keypoints import (
     frame_to_pixel as frame_to_pixel,

@@ -19,7 +19,9 @@ from jaxtyping import ArrayLike, Float
 
 import cldyn
 from cldyn._constraint import Anchor, Distance, FixedCoordinate, Stack
+from cldyn._identify.base import add_dissipation
 
+from ._controls import _place_controls
 from ._data import ImageSequences
 from ._evaluate import json_number, predict_runs, prediction_threshold, valid_prediction_time
 from ._model import KeyCLD
@@ -314,14 +316,16 @@ class ImageIdentification:
     - `identification`: `cldyn.identify`'s result on the estimated keypoints (its report, errors and
       plots, in the model's units: keypoints in the image frame, the model's energy unit).
     - `effects`: one dict per detected effect: `name`, `where` (the joint), `value` and `ci` in
-      MuJoCo's units (`None` where no conversion applies), `value_model` and `ci_model` in the model's.
+      MuJoCo's units (`None` where no conversion applies), `value_model` and `ci_model` in the model's,
+      and `source`: `"force residual"` (`cldyn.identify`) or `"energy balance"` (`add_balance`).
     - `structure`: the `JointStructure` of the keypoints.
     - `joules_per_unit`, `metres_per_unit`: the conversions (`energy_scale`, `metres_per_unit`). An
       effect at an actuated joint converts with that joint's own energy scale (its motor's gear), any
       other with `joules_per_unit`.
     - `energy_spread`: how far the actuated joints' own energy scales disagree (`energy_scale`'s
       `spread`, 1 for one actuated joint): far from 1, the values in MuJoCo's units are unreliable.
-    - `model`: the KeyCLD model with the effects added and the dynamics refitted (float64 dynamics).
+    - `model`: the KeyCLD model with the effects added and the dynamics refitted (float64 dynamics);
+      with `add_balance`, the balance's damping added after the refit.
     - `images`: on the frames' validation runs (left out of the identification), the VPT (mean and
       median), the image MSE over all their frames and its mean over the runs frame by frame
       (`mse_over_time`) of the model `before` and `after` (and `refined`, with `refine`), with the
@@ -365,7 +369,15 @@ def _convert(name: str, kind: str, value: float, joules: float, metres: float) -
 
 
 def identify(
-    model, frames, *, inputs=None, refine=None, balance=True, progress_meter=None, **options
+    model,
+    frames,
+    *,
+    inputs=None,
+    refine=None,
+    balance=True,
+    add_balance=False,
+    progress_meter=None,
+    **options,
 ) -> ImageIdentification:
     """Find the effects that a KeyCLD model learnt from images is missing, from frames of the system.
 
@@ -398,8 +410,11 @@ def identify(
       same keypoints (instrumental variables, the same smoothing), converted as the detections are.
       `cldyn.identify`'s force residual carries the learnt model's errors of inertia and potential at
       every sample, which can be larger than a damping's force; the balance cannot be fooled by
-      them. It is reported beside the detections (`ImageIdentification.balance`), not added to the
-      model.
+      them. It is reported beside the detections (`ImageIdentification.balance`).
+    - `add_balance`: also add to the model, as a `cldyn.JointDamping`, the damping the balance finds
+      at each joint whose interval lies above zero and where no damping was detected (an effect with
+      `"source": "energy balance"`), before the image scores and `refine`. Unlike the detections, it
+      passes no held-out rollout check: the images' before and after are its test.
     - `progress_meter`: a `cldyn.AbstractProgressMeter`.
     - `options`: passed on to `cldyn.identify` (`effects`, `criteria`, `seed`, ...). The learnt
       potential is held fixed in the refit (`refit_potential=False`) unless given otherwise.
@@ -410,6 +425,8 @@ def identify(
     """
     if jax.dtypes.canonicalize_dtype(jnp.float64) != jnp.float64:
         raise ValueError("identify runs in float64: turn on JAX's 64-bit mode first")
+    if add_balance and not balance:
+        raise ValueError("identify: add_balance needs balance=True")
     if not isinstance(model, KeyCLD) or not isinstance(model.dynamics, cldyn.ConstrainedLagrangian):
         raise TypeError("identify: model must be a keyvision.KeyCLD with ConstrainedLagrangian dynamics")
     xml = frames.info.get("mjcf_xml")
@@ -458,6 +475,7 @@ def identify(
                 "ci": ci,
                 "value_model": float(d.value),
                 "ci_model": tuple(float(c) for c in d.ci),
+                "source": "force residual",
             }
         )
     balanced = ()
@@ -467,7 +485,16 @@ def identify(
         balanced = tuple(
             _balance_entry(found, j, structure, scale, metres) for j in range(len(found.joint_names))
         )
-    augmented = KeyCLD(model.estimator, result.model, model.renderer)
+    dynamics_after = result.model
+    if add_balance:
+        damped = {e["where"] for e in effects if e["name"] == "joint_damping"}
+        added = [b for b in balanced if b["detected"] and b["where"] not in damped]
+        if added:
+            coordinates = [structure.coordinates[b["where"]] for b in added]
+            damping = jnp.asarray([b["value_model"] for b in added], dtype=jnp.float64)
+            dynamics_after = add_dissipation(dynamics_after, cldyn.JointDamping(coordinates, damping))
+            effects += [{"name": "joint_damping", **b, "source": "energy balance"} for b in added]
+    augmented = KeyCLD(model.estimator, dynamics_after, model.renderer)
     refined = None
     if refine is not None:
         refined = _refine(augmented, ImageSequences.from_frames(measured), refine, options.get("seed", 0))
@@ -500,48 +527,6 @@ def _balance_entry(found, j: int, structure: JointStructure, scale: dict, metres
         "ci_model": tuple(float(c) for c in found.interval[j]),
         "detected": where in found.detected,
     }
-
-
-def scene_actuators(scene: str) -> tuple[str, ...]:
-    """The names of a scene's actuators, in MuJoCo's order: the `inputs` of `identify` for a model
-    trained on frames of `scene` (what `keyvision.render` accepts: `"keycld/acrobot"`, an MJCF)."""
-    from ._render import _scene_xml
-    from ._scene import _mujoco
-
-    mujoco = _mujoco()
-    model = mujoco.MjModel.from_xml_string(_scene_xml(scene))
-    return tuple(
-        mujoco.mj_id2name(model, mujoco.mjtObj.mjOBJ_ACTUATOR, a) or f"actuator{a}" for a in range(model.nu)
-    )
-
-
-def _place_controls(frames, inputs, num_inputs: int):
-    """The frames with their controls laid out as the model's inputs (see `identify`'s `inputs`)."""
-    count = frames.u.shape[-1]
-    if inputs is None:
-        if count != num_inputs:
-            raise ValueError(
-                f"identify: the frames have {count} controls and the model {num_inputs} inputs; name the "
-                "actuator of each input with inputs= to place the frames' controls by name"
-            )
-        return frames
-    inputs = tuple(str(name) for name in inputs)
-    if len(inputs) != num_inputs:
-        raise ValueError(f"identify: inputs names {len(inputs)} actuators; the model has {num_inputs} inputs")
-    names = [str(name) for name in frames.info.get("actuator_names", [])]
-    if len(names) != count:
-        raise ValueError(
-            f"identify: the frames name {len(names)} actuators for their {count} controls "
-            "(frames.info['actuator_names']): cannot place them by name"
-        )
-    u = np.zeros((*frames.u.shape[:-1], num_inputs), dtype=frames.u.dtype)
-    for column, name in enumerate(names):
-        if name not in inputs:
-            raise ValueError(
-                f"identify: the frames' actuator {name!r} drives none of the model's inputs {inputs}"
-            )
-        u[..., inputs.index(name)] = frames.u[..., column]
-    return dataclasses.replace(frames, u=u)
 
 
 def _single(model):

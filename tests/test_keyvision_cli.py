@@ -285,7 +285,7 @@ def test_render_train_evaluate(tmp_path, capsys):
     # with a few steps of the model's joint stage on the identified runs, after the effects are added
     # (one call: identify's path is the same with or without them, and it is most of this test's time)
     identify = ["identify", "--model", model, "--data", measured, "--out", tmp_path / "id", "--no-progress"]
-    status, out, err = _run(capsys, identify + ["--refine-steps", 2])
+    status, out, err = _run(capsys, identify + ["--refine-steps", 2, "--add-balance"])
     assert status == 0, err
     found = json.loads((tmp_path / "id" / "effects.json").read_text())
     assert found["joints"] == {"hinge": "hinge"} and found["outcome"] in out
@@ -295,6 +295,13 @@ def test_render_train_evaluate(tmp_path, capsys):
     assert balance["where"] == "hinge" and balance["ci"][0] <= balance["value"] <= balance["ci"][1]
     assert balance["value"] / balance["value_model"] == pytest.approx(found["joules_per_unit"], rel=1e-6)
     assert "energy balance" in out
+    # --add-balance: the balance's damping is an effect of the model exactly where its interval lies
+    # above zero and the force residual found no damping
+    residual = [e for e in found["effects"] if e["source"] == "force residual"]
+    damped = {e["where"] for e in residual if e["name"] == "joint_damping"}
+    added = [(e["where"], e["value_model"]) for e in found["effects"] if e["source"] == "energy balance"]
+    expected = [b for b in found["energy_balance"] if b["detected"] and b["where"] not in damped]
+    assert added == [(b["where"], b["value_model"]) for b in expected]
     assert found["images"]["runs"] == 1 and 0 <= found["images"]["before"]["vpt"]["mean"] <= 1
     # the image error frame by frame: its mean is the MSE over all frames; plotted in image_error.png
     for name in ("before", "after"):

@@ -31,7 +31,8 @@ def register(subparsers) -> None:
         "joints), run cldyn's identify with the learnt dynamics as the nominal model (float64), and "
         "convert the detected effects to MuJoCo's units with the camera's scale and the energy scale "
         "that the scene's actuator gears fix. Writes cldyn's report (report.json, report.md, plots) and "
-        "effects.json (every detection in MuJoCo's units and the model's) to --out.",
+        "effects.json (every detection in MuJoCo's units and the model's, and the energy balance's missing "
+        "damping at each joint) to --out.",
     )
     parser.add_argument("--model", required=True, help="the directory keyvision train wrote")
     parser.add_argument("--data", required=True, help="frames.npz of the system, or the directory of one")
@@ -44,6 +45,12 @@ def register(subparsers) -> None:
         default=0,
         help="after the effects are added, train the model this many steps jointly with the image losses "
         "on the identified runs (the joint stage of the model's own training recipe); 0: no such stage",
+    )
+    parser.add_argument(
+        "--add-balance",
+        action="store_true",
+        help="also add to the model the damping that the energy balance finds at a joint (interval above "
+        "zero) where identify detected none (cldyn.energy_balance; see keyvision.identify's add_balance)",
     )
     parser.add_argument("--no-progress", dest="progress", action="store_false", help="no progress lines")
     add_overwrite(parser, "results")
@@ -96,6 +103,7 @@ def run(args: argparse.Namespace) -> int:
             frames,
             inputs=inputs,
             refine=refine,
+            add_balance=args.add_balance,
             progress_meter=meter,
             effects=args.effects,
             seed=args.seed,
@@ -118,12 +126,17 @@ def run(args: argparse.Namespace) -> int:
     atomic_write(out / "effects.json", json.dumps(record, indent=1))
     if result.images is not None:
         _plot_image_error(out / "image_error.png", result.images)
-    found = "; ".join(
-        f"{e['name']}[{e['where']}] = {e['value']:.4g}"
-        if e["value"] is not None
-        else f"{e['name']}[{e['where']}]"
-        for e in result.effects
-    )
+
+    def listed(source):
+        return "; ".join(
+            f"{e['name']}[{e['where']}]" + ("" if e["value"] is None else f" = {e['value']:.4g}")
+            for e in result.effects
+            if e["source"] == source
+        )
+
+    found, added = listed("force residual"), listed("energy balance")
+    if added:
+        found += f"{'; ' if found else ''}added from the energy balance: {added}"
     before, after = result.identification.before, result.identification.after
     images = ""
     if result.images is not None:
