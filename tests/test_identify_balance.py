@@ -152,3 +152,31 @@ def test_the_balance_rejects_bad_input():
         )
     with pytest.raises(TypeError, match="joint.coordinate"):
         cldyn.energy_balance(system, data, joint_coordinates={"shoulder": lambda x: x[0]})
+
+
+@pytest.mark.mujoco
+def test_the_balance_reads_mujocos_damping_through_noise():
+    # MuJoCo as reality: the KeyCLD acrobot with dm_control's stock damping (0.05 N m s at both joints),
+    # recorded through 1 mm of noise, against the damping-free MJCF through from_mjcf
+    pytest.importorskip("mujoco")
+    from cldyn.mujoco import from_mjcf, modify_scene, record
+
+    damping = 0.05
+    xml = modify_scene("keycld/acrobot", joints={j: {"damping": damping} for j in ("shoulder", "elbow")})
+    data = record(
+        xml,
+        runs=20,
+        duration=3.0,
+        dt=0.01,
+        physics_dt=0.002,
+        integrator="rk4",
+        noise=0.001,
+        control_range=(-0.5, 0.5),
+        seed=0,
+    )
+    bridge = from_mjcf("keycld/acrobot")
+    coordinates = dict(zip(bridge.joint_names, bridge.joint_coordinates))
+    balance = cldyn.energy_balance(bridge.system, data, joint_coordinates=coordinates)
+    print(balance.summary())
+    _close(balance, (damping, damping), NOISY_RTOL)
+    assert balance.detected == ("shoulder", "elbow")
