@@ -481,7 +481,9 @@ def identify(
     balanced = ()
     if balance:
         seed = options.get("seed", 0)
-        found = cldyn.energy_balance(dynamics, data, joint_coordinates=structure.coordinates, seed=seed)
+        found = cldyn.energy_balance(
+            dynamics, data, joint_coordinates=structure.coordinates, joints=structure.joint_map, seed=seed
+        )
         balanced = tuple(
             _balance_entry(found, j, structure, scale, metres) for j in range(len(found.joint_names))
         )

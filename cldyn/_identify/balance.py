@@ -19,6 +19,13 @@ With `instrumented`, every velocity is estimated three times from disjoint sampl
 window (offsets 0, 1 and 2 modulo 3), whose noises are independent where the positions' noise is white;
 the columns and the energy are made of products of the first two (their noise averages out of a
 product) and the instruments of the third.
+
+A polynomial in time holds a joint angle over the smoothing window far better than the sines and cosines
+that a keypoint on a fast-turning link traces: at a third of a turn per sample, a window of eleven
+Cartesian samples spans a whole turn and its velocity is badly wrong, the more so the faster the turn, so
+the error grows with the speed and the energy balance reads it as dissipation. Given the mechanism's
+`JointMap`, the smoothing is done on its joint coordinates (unwrapped) and mapped to the keypoints,
+`x = F(q)`, `xd = DF(q) qd`.
 """
 
 import dataclasses
@@ -30,7 +37,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .._coordinates import AbstractCoordinate, HingeAngle
+from .._coordinates import AbstractCoordinate, HingeAngle, JointMap
 from .._data import Sequences
 from .._system import ConstrainedLagrangian
 from .smoothing import Smoothing, savitzky_golay
@@ -51,6 +58,7 @@ class EnergyBalance:
     - `instrumented`: whether the fit was by instrumental variables (else least squares).
     - `window`, `order`: the Savitzky-Golay window (samples) and degree of the velocities.
     - `basis_order`: the order of the basis of the energy's error.
+    - `joint_space`: whether the velocities were smoothed in joint coordinates (a `JointMap` was given).
     - `windows`: the number of balance windows fitted; `columns`: the number of unknowns.
     - `residual_rms`, `balance_rms`: RMS of the balance before and after the fit (energy units).
     """
@@ -62,6 +70,7 @@ class EnergyBalance:
     window: int
     order: int
     basis_order: int
+    joint_space: bool
     windows: int
     columns: int
     residual_rms: float
@@ -75,8 +84,10 @@ class EnergyBalance:
     def summary(self) -> str:
         """One line per joint: the damping and its interval."""
         fit = "instrumental variables" if self.instrumented else "least squares"
+        space = "joint" if self.joint_space else "keypoint"
         lines = [
-            f"energy balance ({fit}, window {self.window}, degree {self.order}, {self.windows} windows):"
+            f"energy balance ({fit}, window {self.window}, degree {self.order} in {space} coordinates, "
+            f"{self.windows} windows):"
         ]
         for name, value, (low, high) in zip(self.joint_names, self.damping, self.interval):
             lines.append(f"  {name}: damping {value:.4g} [{low:.4g}, {high:.4g}]")
@@ -107,6 +118,18 @@ def _disjoint(x: np.ndarray, window: int, order: int, dt: float) -> list[np.ndar
         weights[chosen + half] = np.linalg.pinv(powers)[1] / max(half, 1) / dt
         out.append(np.einsum("rnkw,w->rnk", views, weights))
     return out
+
+
+def _smoothed(x: np.ndarray, window: int, order: int, dt: float, instrumented: bool):
+    """The smoothed positions `(runs, T - window + 1, k)` and three velocity estimates: from disjoint
+    samples of the window (`instrumented`), else the one Savitzky-Golay derivative three times."""
+    views = np.lib.stride_tricks.sliding_window_view(x, window, axis=1)
+    filters = savitzky_golay(window, order)
+    smooth = np.einsum("rnkw,w->rnk", views, filters[0])
+    if instrumented:
+        return (smooth, *_disjoint(x, window, order, dt))
+    velocity = np.einsum("rnkw,w->rnk", views, filters[1] / dt)
+    return smooth, velocity, velocity, velocity
 
 
 def _features(q: np.ndarray, hinges: tuple[bool, ...], order: int) -> np.ndarray:
@@ -176,7 +199,7 @@ def _rows(start: int, stop: int, count: int) -> tuple[np.ndarray, np.ndarray]:
     return points[first], points[last]
 
 
-def _check(model, data, joint_coordinates) -> None:
+def _check(model, data, joint_coordinates, joints) -> None:
     if not isinstance(model, ConstrainedLagrangian):
         raise TypeError(f"energy_balance needs a ConstrainedLagrangian, got {type(model).__name__}")
     if not isinstance(data, Sequences):
@@ -194,6 +217,14 @@ def _check(model, data, joint_coordinates) -> None:
         raise ValueError(
             f"u must have {model.num_inputs} controls per sample, got shape {tuple(data.u.shape)}"
         )
+    if joints is not None:
+        if not isinstance(joints, JointMap):
+            raise TypeError(f"joints must be a cldyn.JointMap, got {type(joints).__name__}")
+        if tuple(joints.names) != tuple(joint_coordinates):
+            raise ValueError(
+                f"joints names its coordinates {tuple(joints.names)} but joint_coordinates has "
+                f"{tuple(joint_coordinates)}: they must be the same joints in the same order"
+            )
     if data.num_runs < 4:
         raise ValueError(f"energy_balance needs at least 4 runs (for its bootstrap), got {data.num_runs}")
 
@@ -208,6 +239,7 @@ def energy_balance(
     smoothing: Smoothing = Smoothing(),
     bootstrap: int = 200,
     seed: int = 0,
+    joints: JointMap | None = None,
 ) -> EnergyBalance:
     """Measure the viscous damping at each joint that a model lacks, by an energy balance that errors
     of the model's inertia and potential cannot fake.
@@ -223,7 +255,10 @@ def energy_balance(
 
     Velocities come from the Savitzky-Golay window and degree that `smoothing` chooses on the keypoints
     (as `identify` does). The window ends are spaced evenly, at most 40 per run, so the fit does not
-    depend on the sampling rate. Controls are held from each sample to the next.
+    depend on the sampling rate. Controls are held from each sample to the next. With `joints`, the
+    smoothing is done on the joint coordinates and mapped to the keypoints, which holds fast turns that
+    a polynomial through the keypoints cannot (see the module's notes); the window is chosen on the
+    keypoints either way.
 
     **Arguments:**
 
@@ -236,6 +271,8 @@ def energy_balance(
       least squares.
     - `smoothing`: how the velocities' window is chosen (`cldyn.Smoothing`).
     - `bootstrap`, `seed`: bootstrap replicates over runs, and their seed.
+    - `joints`: the mechanism's `JointMap` (its names those of `joint_coordinates`, in order), to smooth
+      in joint coordinates; `None` smooths the keypoints.
 
     **Returns:** an `EnergyBalance`.
 
@@ -247,7 +284,7 @@ def energy_balance(
         print(balance.summary())
         ```
     """
-    _check(model, data, joint_coordinates)
+    _check(model, data, joint_coordinates, joints)
     if basis_order < 0:
         raise ValueError(f"basis_order must be non-negative, got {basis_order}")
     x = np.asarray(data.x, dtype=np.float64)
@@ -260,22 +297,25 @@ def energy_balance(
             f"runs of {samples} samples are too short for the smoothing window of {window} samples"
         )
     half, inner = window // 2, samples - window + 1
-    views = np.lib.stride_tricks.sliding_window_view(x, window, axis=1)
-    smooth = np.einsum("rnkw,w->rnk", views, savitzky_golay(window, order)[0])
-    if instrumented:
-        va, vb, vc = _disjoint(x, window, order, dt)
+    flat = lambda a: jnp.asarray(a.reshape(-1, a.shape[-1]))  # noqa: E731
+    coordinates = tuple(joint_coordinates.values())
+    hinges = tuple(isinstance(c, HingeAngle) for c in coordinates)
+    if joints is None:
+        smooth, va, vb, vc = _smoothed(x, window, order, dt, instrumented)
     else:
-        va = vb = vc = np.einsum("rnkw,w->rnk", views, savitzky_golay(window, order)[1] / dt)
+        angles = np.asarray(jax.vmap(joints.joints)(flat(x))).reshape(runs, samples, -1)
+        angles = np.where(np.array(hinges), np.unwrap(angles, axis=1), angles)
+        q_smooth, *q_velocities = _smoothed(angles, window, order, dt, instrumented)
+        place = jax.jit(jax.vmap(lambda p, w: jax.jvp(joints.keypoints, (p,), (w,))))
+        mapped = [place(flat(q_smooth), flat(v)) for v in q_velocities]
+        smooth = np.asarray(mapped[0][0]).reshape(runs, inner, -1)
+        va, vb, vc = (np.asarray(tangent).reshape(runs, inner, -1) for _, tangent in mapped)
     held = u[:, half : half + inner]
-    flat = lambda a: jnp.asarray(a.reshape(runs * inner, a.shape[-1]))  # noqa: E731
     energy, flow, power = (
         np.asarray(a).reshape(runs, inner, *a.shape[1:])
         for a in _model_terms(model, flat(smooth), flat(va), flat(vb), flat(held))
     )
     work = _held_work(flow, held, dt) + _cumulative(power, dt)
-
-    coordinates = tuple(joint_coordinates.values())
-    hinges = tuple(isinstance(c, HingeAngle) for c in coordinates)
 
     def joint_velocities(v):
         tangent = jax.vmap(lambda p, w: jnp.stack([jax.jvp(c, (p,), (w,))[1] for c in coordinates]))
@@ -332,6 +372,7 @@ def energy_balance(
         window=window,
         order=order,
         basis_order=basis_order,
+        joint_space=joints is not None,
         windows=int(y.size),
         columns=int(a_columns.shape[-1]),
         residual_rms=float(np.sqrt(np.mean(residual**2))),
