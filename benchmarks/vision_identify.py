@@ -75,6 +75,14 @@ def _mse(images: dict) -> str:
     return "failed" if images["mse"] is None else f"{images['mse']:.2e}"
 
 
+def _mse_head(images: dict, frames: int = PAPER_FRAMES) -> str:
+    """The image MSE over the first `frames` frames of the held-out runs (the paper's horizon)."""
+    curve = images.get("mse_over_time")
+    return (
+        "failed" if images["mse"] is None or not curve else f"{sum(curve[:frames]) / len(curve[:frames]):.2e}"
+    )
+
+
 def _case(scene: str, joints: dict | None, seed: int, args, *, stock: bool = False) -> dict:
     import jax
 
@@ -129,6 +137,8 @@ def _case(scene: str, joints: dict | None, seed: int, args, *, stock: bool = Fal
         "joules_per_unit": result.joules_per_unit,
         "energy_spread": result.energy_spread,
         "balance": list(result.balance),
+        # keyvision.identify smooths the balance's velocities in the scene's joint coordinates
+        **({"balance_smoothing": "joints"} if result.balance else {}),
         "seconds": round(time.perf_counter() - started, 1),
     }
 
@@ -141,6 +151,7 @@ def _balance(row: dict) -> str:
             + ("*" if b["detected"] else "")
             for b in row.get("balance", [])
         )
+        + ("" if row.get("balance_smoothing") or not row.get("balance") else " (keypoints' smoothing)")
         or "-"
     )
 
@@ -307,9 +318,11 @@ def main() -> None:
         "(`benchmarks/vision_identify.py`). Values in MuJoCo's units (`keyvision.identify`'s conversion).",
         "",
         "The last column is `cldyn.energy_balance` on the same keypoints and model (reported by "
-        "`keyvision.identify` beside its detections, not added to the model): the viscous damping each "
-        "joint lacks by the balance of energy, with its 95% interval, in MuJoCo's units; `*` where the "
-        "interval lies above zero (rows from before the balance have `-`).",
+        '`keyvision.identify` beside its detections; added to the model only in the rows marked "the '
+        "balance's damping added\", `--add-balance`): the viscous damping each joint lacks by the balance "
+        "of energy, with its 95% interval, in MuJoCo's units; `*` where the interval lies above zero (rows "
+        'from before the balance have `-`; rows marked "keypoints\' smoothing" are from before it smoothed '
+        "the velocities in the joint coordinates, 2026-12-03).",
         "",
         "| scene | injected | outcome | found | value (error) | held-out VPT before -> after "
         "| image MSE before -> after | energy balance |",
@@ -333,6 +346,9 @@ def main() -> None:
         if images:
             vpt = f"{images['before']['vpt']['mean']:.3f} -> {images['after']['vpt']['mean']:.3f}"
             mse = f"{_mse(images['before'])} -> {_mse(images['after'])}"
+            if _frames(row) > PAPER_FRAMES:  # and over the paper's horizon
+                head = f"{_mse_head(images['before'])} -> {_mse_head(images['after'])}"
+                mse += f" (first {PAPER_FRAMES} frames {head})"
             if "refined" in images:  # then jointly with the image losses
                 vpt += f" -> {images['refined']['vpt']['mean']:.3f} (image refit)"
                 mse += f" -> {_mse(images['refined'])} (image refit)"
@@ -370,7 +386,15 @@ def main() -> None:
                 if n["scene"] == scene and (_frames(n), _model(n), n.get("add_balance", False)) == group
             ]
             quiet = sum(1 for n in mine if not n["effects"])
-            outcomes = ", ".join(n["outcome"] for n in mine)
+            outcomes = ", ".join(
+                ", ".join(
+                    f"{e['name']}[{e['where']}]"
+                    + (" by the energy balance" if e.get("source") == "energy balance" else "")
+                    for e in n["effects"]
+                )
+                or n["outcome"]
+                for n in mine
+            )
             length = f" ({_length(mine[0]).lstrip(', ')})" if _length(mine[0]) else ""
             balanced = [n for n in mine if "balance" in n]
             if balanced:  # the energy balance's false detections, where it ran

@@ -21,9 +21,10 @@ the columns and the energy are made of products of the first two (their noise av
 product) and the instruments of the third.
 
 A polynomial in time holds a joint angle over the smoothing window far better than the sines and cosines
-that a keypoint on a fast-turning link traces: at a third of a turn per sample, a window of eleven
-Cartesian samples spans a whole turn and its velocity is badly wrong, the more so the faster the turn, so
-the error grows with the speed and the energy balance reads it as dissipation. Given the mechanism's
+that a keypoint on a fast-turning link traces: where a link turns a third of a radian or more per
+sample, a window of eleven samples spans half a turn or more, the polynomial through the keypoints
+misses their velocity, the more so the faster the turn, and the energy balance reads the error, which
+grows with the speed, as dissipation. Given the mechanism's
 `JointMap`, the smoothing is done on its joint coordinates (unwrapped) and mapped to the keypoints,
 `x = F(q)`, `xd = DF(q) qd`.
 """
