@@ -336,7 +336,7 @@ class ImageIdentification:
       and model: `where`, the viscous damping the model lacks there by the balance of energy (`value`,
       `ci`: MuJoCo's units; `value_model`, `ci_model`: the model's) and `detected` (its interval above
       zero). A check beside the detections, which errors of the learnt inertia and potential do not
-      bias; it adds nothing to `model`.
+      bias; it adds to `model` only with `add_balance`.
     """
 
     identification: object
@@ -407,7 +407,8 @@ def identify(
       fields) on the identified runs' frames; its other stages are not run. `None` (default): the
       dynamics refit of `cldyn.identify` only.
     - `balance`: also measure each joint's missing viscous damping by `cldyn.energy_balance` on the
-      same keypoints (instrumental variables, the same smoothing), converted as the detections are.
+      same keypoints (instrumental variables, identify's window, the velocities smoothed in the
+      joint coordinates of the keypoints' structure), converted as the detections are.
       `cldyn.identify`'s force residual carries the learnt model's errors of inertia and potential at
       every sample, which can be larger than a damping's force; the balance cannot be fooled by
       them. It is reported beside the detections (`ImageIdentification.balance`).

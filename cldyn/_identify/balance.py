@@ -24,9 +24,8 @@ A polynomial in time holds a joint angle over the smoothing window far better th
 that a keypoint on a fast-turning link traces: where a link turns a third of a radian or more per
 sample, a window of eleven samples spans half a turn or more, the polynomial through the keypoints
 misses their velocity, the more so the faster the turn, and the energy balance reads the error, which
-grows with the speed, as dissipation. Given the mechanism's
-`JointMap`, the smoothing is done on its joint coordinates (unwrapped) and mapped to the keypoints,
-`x = F(q)`, `xd = DF(q) qd`.
+grows with the speed, as dissipation. Given the mechanism's `JointMap`, the smoothing is done on its
+joint coordinates (unwrapped) and mapped to the keypoints, `x = F(q)`, `xd = DF(q) qd`.
 """
 
 import dataclasses
