@@ -223,6 +223,12 @@ def main() -> None:
     parser.add_argument(
         "--attributes", nargs="+", help="only the cases that inject these MJCF attributes (all by default)"
     )
+    parser.add_argument(
+        "--values",
+        nargs="+",
+        metavar="JOINT=VALUE",
+        help="only the injected cases of these joints and values, e.g. elbow=0.3 (all by default)",
+    )
     args = parser.parse_args()
     args.models = {**MODELS, **dict(item.split("=", 1) for item in args.model)}
     import jax
@@ -231,6 +237,8 @@ def main() -> None:
     rows, negatives = [], []
     for scene, joint, attribute, value, effect in CASES:
         if scene not in args.scenes or (args.attributes and attribute not in args.attributes):
+            continue
+        if args.values and f"{joint}={value:g}" not in args.values:
             continue
         found = _case(scene, {joint: {attribute: value}}, STOCK_SEED, args)
         top = found["effects"][0] if found["effects"] else None
