@@ -151,7 +151,6 @@ def _balance(row: dict) -> str:
             + ("*" if b["detected"] else "")
             for b in row.get("balance", [])
         )
-        + ("" if row.get("balance_smoothing") or not row.get("balance") else " (keypoints' smoothing)")
         or "-"
     )
 
@@ -329,8 +328,7 @@ def main() -> None:
         '`keyvision.identify` beside its detections; added to the model only in the rows marked "the '
         "balance's damping added\", `--add-balance`): the viscous damping each joint lacks by the balance "
         "of energy, with its 95% interval, in MuJoCo's units; `*` where the interval lies above zero (rows "
-        'from before the balance have `-`; rows marked "keypoints\' smoothing" are from before it smoothed '
-        "the velocities in the joint coordinates, 2026-12-03).",
+        "from before the balance have `-`).",
         "",
         "| scene | injected | outcome | found | value (error) | held-out VPT before -> after "
         "| image MSE before -> after | energy balance |",
