@@ -23,7 +23,7 @@ from helpers import reference_systems, simulate_reference
 
 import cldyn
 from cldyn._identify.regression import Groups, Normal, fit, inadmissible
-from cldyn._identify.smoothing import prepare
+from cldyn._identify.smoothing import periodic_joints, prepare, smooth_in_joints
 
 DAMPING_RTOL = 0.05  # linear damping beside the quadratic one, on exact data
 QUADRATIC_RTOL = 0.15  # the acceptance figure for the new effect
@@ -36,6 +36,10 @@ SINE_RTOL = 1e-4
 BY_PARTS_RTOL = 1e-4  # the sums of the quadrature against the integrals (2e-5 here)
 NOISE_RTOL = 0.05  # noise estimated from 6 runs of 4 s
 DECIMATION_RTOL = 2e-3  # weak integrals from kept samples against every sample
+JOINT_SMOOTHING_ATOL = (1e-9, 1e-8, 1e-6)  # joint angles quadratic in time: x, xd, xdd
+# the damped acrobot at 25 Hz: 0.2%, 0.7% through the joints (2.8%, 3.4% through the keypoints); at 20 Hz
+# 0.9%, 3.4% (without substeps the nominal model's rollouts diverged there and nothing was detected)
+FAST_TURNS_RTOL = {0.04: 0.015, 0.05: 0.05}
 
 
 # -- pieces -------------------------------------------------------------------------------------
@@ -56,6 +60,38 @@ def test_smoothing_differentiates_polynomials_exactly_and_sines_accurately():
     omega = 6.0
     x, xd, _ = choice.smooth(np.sin(omega * t)[None, :, None])
     assert np.max(np.abs(xd[0, :, 0] - omega * np.cos(omega * interior))) < SINE_RTOL * omega
+
+
+def test_smoothing_in_joint_coordinates_holds_fast_turns_exactly():
+    # joint angles quadratic in time, 0.4 rad per sample: a degree-4 polynomial through the keypoints'
+    # arcs misses their velocity, through the angles it is exact; the truth is F(q(t)) differentiated
+    # in time by JAX
+    _, joints, _ = reference_systems()["acrobot"]
+    dt = 0.04
+    t = np.arange(40) * dt
+    a, b, c = jnp.array([0.3, -1.0]), jnp.array([10.0, -7.0]), jnp.array([-4.0, 6.0])
+    path = lambda s: joints.keypoints(a + b * s + c * s**2)  # noqa: E731
+    x = np.asarray(jax.vmap(path)(jnp.asarray(t)))[None]
+    choice = cldyn.Smoothing(window=11 * dt, order=4, decimate=False).choose(np.zeros((1, t.size, 1)), dt)
+    assert choice.window == 11 and choice.step == 1
+    inner = jnp.asarray(t[choice.margin : -choice.margin])
+    truth = (
+        jax.vmap(path)(inner),
+        jax.vmap(jax.jacfwd(path))(inner),
+        jax.vmap(jax.jacfwd(jax.jacfwd(path)))(inner),
+    )
+    for smoothed, expected, atol in zip(smooth_in_joints(choice, joints, x), truth, JOINT_SMOOTHING_ATOL):
+        assert np.allclose(smoothed[0], expected, atol=atol)
+    _, keypoint_velocity, _ = choice.smooth(x)
+    assert np.max(np.abs(keypoint_velocity[0] - truth[1])) > 0.05  # the premise: the keypoints' arcs
+
+
+def test_the_angles_of_a_joint_map_are_found_by_a_turn():
+    _, acrobot, _ = reference_systems()["acrobot"]
+    _, cartpole, _ = reference_systems()["cartpole"]
+    assert periodic_joints(acrobot, acrobot.keypoints(jnp.array([0.4, -2.0]))).tolist() == [True, True]
+    # the cart's slider is a length, the pole's hinge an angle
+    assert periodic_joints(cartpole, cartpole.keypoints(jnp.array([0.3, 1.0]))).tolist() == [False, True]
 
 
 def test_test_functions_integrate_derivatives_by_parts():
@@ -331,6 +367,27 @@ def test_identify_gives_the_same_damping_at_two_rates():
     assert all(abs(v - b) <= DAMPING_RATES_RTOL * b for v in values)
     assert abs(values[0] - values[1]) <= RATE_AGREEMENT * values[1]
     assert abs(widths[0] - widths[1]) <= 0.1 * widths[1]
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("dt", [0.04, 0.05])
+def test_identify_reads_fast_turns_sampled_coarsely(dt):
+    # the damped acrobot sampled at 25 and 20 Hz, its links turning 0.4-0.5 rad per sample (95th
+    # percentile): smoothed through the joint map's angles, and rolled out in steps of a tenth of the
+    # motion's time scale, the damping is read nearly as at 100 Hz
+    damping = (0.05, 0.03)
+    system, joints, data, coordinates = _reference_data(
+        "acrobot", lambda q, qd: -jnp.asarray(damping) * qd, seconds=6.0, dt=dt, seed=3
+    )
+    angles = np.unwrap(np.asarray(jax.vmap(jax.vmap(joints.joints))(jnp.asarray(data.x))), axis=1)
+    assert np.percentile(np.abs(np.diff(angles, axis=1)), 95) > 0.3  # the premise: fast turns
+    result = cldyn.identify(system, data, joint_coordinates=coordinates, joints=joints, bootstrap=30)
+    assert result.settings["smoothing"]["rollout_substeps"] > 1
+    assert result.before.diverged == 0 and result.after.diverged == 0
+    found = {d.where: d.value for d in result.detected if d.name == "joint_damping"}
+    assert set(found) == {"shoulder", "elbow"}, result.summary()
+    for where, truth in zip(("shoulder", "elbow"), damping):
+        assert abs(found[where] - truth) <= FAST_TURNS_RTOL[dt] * truth, result.summary()
 
 
 def test_identify_names_a_residual_of_the_forbidden_sign():

@@ -89,8 +89,12 @@ def _rollout_batch(
     rtol: float = 1e-6,
     atol: float = 1e-9,
     roll=_rollout_states,
+    substeps: int = 1,
 ):
     """Rollouts from the start of each run, and whether each initial-state fit converged.
+
+    Each interval `dt` of the data is integrated in `substeps` steps, its control held over them: a
+    step must resolve the motion, whatever the rate at which it was sampled.
 
     The initial state is estimated with the model itself: starting from the smoothed state, the
     positions and velocities are adjusted (Gauss-Newton) so that the first `window` samples of
@@ -119,6 +123,8 @@ def _rollout_batch(
     # per residual row, sample by sample as `target` lays them out
     weight = jnp.repeat(valid[:, : window + 1].astype(measured.dtype), measured.shape[-1], axis=1)
     probe_us = jnp.repeat(us, n + 1, axis=0)
+    if substeps > 1:
+        probe_us = jnp.repeat(probe_us, substeps, axis=1)[:, : (us.shape[1] - 1) * substeps + 1]
 
     def cond(carry):
         _, count, done, _, _ = carry
@@ -128,7 +134,7 @@ def _rollout_batch(
         y, count, done, converged, _ = carry
         h = relative_step * (1 + jnp.abs(y))  # (runs, 2k)
         probes = y[:, None, :] + jnp.concatenate([jnp.zeros((runs, 1, n), y.dtype), jax.vmap(jnp.diag)(h)], 1)
-        xs = roll(model, probes.reshape(-1, n), probe_us, dt)
+        xs = roll(model, probes.reshape(-1, n), probe_us, dt / substeps)[:, ::substeps]
         xs = xs.reshape((runs, n + 1) + measured.shape[1:])
         window_xs = xs[:, :, : window + 1].reshape(runs, n + 1, -1)
         jac = jnp.swapaxes((window_xs[:, 1:] - window_xs[:, :1]) / h[:, :, None], 1, 2) * weight[:, :, None]
@@ -150,10 +156,11 @@ def _rollout_batch(
 
 
 def rollout_errors(
-    model: ConstrainedLagrangian, data: Prepared, horizon: float, window: float = 0.2
+    model: ConstrainedLagrangian, data: Prepared, horizon: float, window: float = 0.2, substeps: int = 1
 ) -> tuple[np.ndarray, np.ndarray, int, int]:
     """Keypoint position error over time of rollouts from the first kept state of every run, with the
-    controls held between kept samples (`data.u_hold`). A run's error ends before its first excluded
+    controls held between kept samples (`data.u_hold`), each interval integrated in `substeps` steps.
+    A run's error ends before its first excluded
     sample (a joint at its limit, which the model does not know): NaN from there on. A rollout that
     turns non-finite before that has an infinite error.
 
@@ -174,6 +181,7 @@ def rollout_errors(
         jnp.asarray(measured),
         samples,
         jnp.asarray(~reached),
+        substeps=substeps,
     )
     error = np.linalg.norm((np.asarray(xs) - measured).reshape(xs.shape[0], steps + 1, -1, 2), axis=-1)
     error = np.where(np.isfinite(error), error, np.inf)
@@ -189,9 +197,11 @@ def errors(
     horizon: float,
     tests: TestFunctions,
     kept: np.ndarray | None = None,
+    substeps: int = 1,
 ) -> tuple[Errors, np.ndarray, np.ndarray]:
     """The model's `Errors` on `data`, with the rollout error over time; `kept` `(runs, n)` says which
-    test functions count for the acceleration error (all by default).
+    test functions count for the acceleration error (all by default); `substeps` integration steps per
+    interval of the data.
 
     **Returns:** `(errors, ts, error (runs, T, keypoints))`.
     """
@@ -202,7 +212,7 @@ def errors(
     if kept is None:
         kept = np.ones(error.shape[:2], dtype=bool)
     accel_rmse = float(np.sqrt(np.sum(error[kept] ** 2) / max(error[kept].size, 1)))
-    ts, error, unconverged, diverged = rollout_errors(model, data, horizon)
+    ts, error, unconverged, diverged = rollout_errors(model, data, horizon, substeps=substeps)
     valid = ~np.isnan(error)
     rollout_rmse = float(np.sqrt(np.mean(error[valid] ** 2))) if valid.any() else float("nan")
     return Errors(accel_rmse, rollout_rmse, float(ts[-1]), unconverged, diverged), ts, error

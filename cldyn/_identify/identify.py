@@ -85,7 +85,13 @@ def _noise_response(model, joints, data, choice, coordinates, tests, weak_residu
     the measurement: the noise floor of the equations (same shapes, so no new compilation)."""
     rng = np.random.default_rng([seed, 1])
     x = np.asarray(data.x, dtype=float)
-    noisy = prepare(x + choice.noise * rng.standard_normal(x.shape), np.asarray(data.u), choice, coordinates)
+    noisy = prepare(
+        x + choice.noise * rng.standard_normal(x.shape),
+        np.asarray(data.u),
+        choice,
+        coordinates,
+        joints if isinstance(joints, JointMap) else None,
+    )
     perturbed = tests.weak(*evaluate(Residual(model, joints), *noisy.arrays()))
     return perturbed[..., 0] - weak_residual[..., 0]
 
@@ -138,11 +144,13 @@ def identify(
 
     0. **Data.** The smoothing and weak-form settings are chosen from the data, in physical time
        (`Smoothing`: the position noise and the motion's time scale are estimated; fast data are
-       decimated after smoothing). The measured keypoints must keep the model's constraints to within
-       the noise (`cldyn.check_constraints`), else `cldyn.ConstraintViolation` is raised: a wrong link
-       length or origin is not missing physics. Samples at a joint limit (`joint_limits`) are left out.
-       Whether the data can support a conclusion is judged (`Adequacy`: too short, too noisy, motion
-       not resolved, a joint that never moves, a control that never varies).
+       decimated after smoothing; given `joints`, the smoothing is done on its joint coordinates and
+       mapped to the keypoints, which holds fast turns). The measured keypoints must keep the model's
+       constraints to within the noise (`cldyn.check_constraints`), else `cldyn.ConstraintViolation`
+       is raised: a wrong link length or origin is not missing physics. Samples at a joint limit
+       (`joint_limits`) are left out. Whether the data can support a conclusion is judged
+       (`Adequacy`: too short, too noisy, motion not resolved, a joint that never moves, a control
+       that never varies).
     1. **Residual.** The joint-space residual
        $r = G^T (M(x) \\ddot x - f(x, \\dot x, u))$ with $G = dx/dq$ is what the model misses along
        the constraint manifold (the unknown multipliers drop out), taken in the weak form.
@@ -168,10 +176,11 @@ def identify(
       controls `u` `(runs, T, l)` as applied, each from its sample to the next, and `dt`.
     - `joint_coordinates`: name -> joint coordinate `q(x)`, for the joint effects (for a MuJoCo
       model: `dict(zip(bridge.joint_names, bridge.joint_coordinates))`).
-    - `joints`: the `JointMap` whose Jacobian is the basis `G` (and whose keypoints give the levels of
-      the constraints the data are checked against); without it, `G = dx/dq` as the joint coordinates
-      and the constraints determine it (one joint coordinate per degree of freedom), and the
-      constraints need only stay constant.
+    - `joints`: the `JointMap` whose Jacobian is the basis `G`, whose keypoints give the levels of the
+      constraints the data are checked against, and in whose joint coordinates the positions are
+      smoothed (`x = F(q)`, `xd = DF(q) qd`, angles unwrapped); without it, `G = dx/dq` as the joint
+      coordinates and the constraints determine it (one joint coordinate per degree of freedom), the
+      keypoints are smoothed, and the constraints need only stay constant.
     - `joint_limits`: joint name -> `(low, high)` in the joint coordinate's units, for joints with
       limits the model does not express (`from_mjcf` gives them as `bridge.joint_limits`).
     - `actuator_names`, `keypoint_names`: names for reports; by default `data.info`'s, if it has them.
@@ -224,7 +233,7 @@ def identify(
     x = np.asarray(data.x, dtype=float)
     choice = smoothing.choose(x, data.dt)
     _check_kinematics(model, joints, x, choice.noise, context.keypoint_names)
-    prepared = prepare(x, np.asarray(data.u), choice, coordinates)
+    prepared = prepare(x, np.asarray(data.u), choice, coordinates, joints)
     tests = choice.test_functions(prepared.x.shape[1])
     if tests.count == 0:
         raise ValueError(
@@ -263,7 +272,7 @@ def identify(
             noise_response=noise_response[fit_runs],
             criteria=criteria,
         )
-        before, ts, error_before = errors(model, held_data, horizon, tests, kept[held])
+        before, ts, error_before = errors(model, held_data, horizon, tests, kept[held], choice.substeps)
         before_excluded = prepared.excluded
         problems += _unconverged("nominal", before)
         meter = progress_meter.update(meter, 1, {"rollout_rmse_1s": before.rollout_rmse_1s})
@@ -334,7 +343,9 @@ def identify(
                 prepared = dataclasses.replace(prepared, excluded=prepared.excluded | outside)
                 kept = ~tests.support(prepared.excluded)
                 fit_data, held_data = prepared.take(fit_runs), prepared.take(held)
-                current_errors, _, error_after = errors(current, held_data, horizon, tests, kept[held])
+                current_errors, _, error_after = errors(
+                    current, held_data, horizon, tests, kept[held], choice.substeps
+                )
 
             def trial_of(detections):
                 """The model with `detections` added and refitted, and its held-out errors."""
@@ -343,7 +354,7 @@ def identify(
                     augmented, fit_data, frame, weights, tests,
                     kept=kept[fit_runs], potential=refit_potential,
                 )
-                found, _, curve = errors(augmented, held_data, horizon, tests, kept[held])
+                found, _, curve = errors(augmented, held_data, horizon, tests, kept[held], choice.substeps)
                 return augmented, solved, found, curve
 
             trial, solved, trial_errors, trial_curve = trial_of(new)
@@ -392,7 +403,7 @@ def identify(
             detected += [d.refitted(d.candidate.effect.refitted(current, d.candidate, context)) for d in new]
         if (prepared.excluded != before_excluded).any():
             # the errors before and after on the same samples
-            before, ts, error_before = errors(model, held_data, horizon, tests, kept[held])
+            before, ts, error_before = errors(model, held_data, horizon, tests, kept[held], choice.substeps)
             if current is model:
                 current_errors, error_after = before, error_before
         meter = progress_meter.update(

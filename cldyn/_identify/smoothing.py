@@ -3,6 +3,7 @@ differentiation, test functions, decimation and the prepared runs. The settings 
 data (`choice.py`) unless given."""
 
 import dataclasses
+import math
 from typing import Any
 
 import equinox as eqx
@@ -11,7 +12,9 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import ArrayLike
 
-from .._coordinates import AbstractCoordinate
+from .._coordinates import AbstractCoordinate, JointMap
+
+_STEPS_PER_TIMESCALE = 10  # rollout steps per time scale of the motion, at least
 
 
 class Smoothing(eqx.Module):
@@ -150,6 +153,14 @@ class SmoothingChoice:
         """Rows of the weak equations per independent one (test functions overlap)."""
         return self.test_width / self.test_stride
 
+    @property
+    def substeps(self) -> int:
+        """Integration steps per kept interval in identify's rollouts: enough that a step is at most a
+        tenth of the motion's time scale (1 wherever the kept samples resolve the motion that finely)."""
+        if not (math.isfinite(self.timescale) and self.timescale > 0):
+            return 1
+        return max(1, math.ceil(_STEPS_PER_TIMESCALE * self.interval / self.timescale - 1e-9))
+
     def grid(self, samples: int) -> np.ndarray:
         """The indices of the kept samples in runs of `samples` samples of the data."""
         return np.arange(self.margin, samples - self.margin, self.step)
@@ -194,6 +205,7 @@ class SmoothingChoice:
             "order": self.order,
             "decimation": self.step,
             "interval_seconds": self.interval,
+            "rollout_substeps": self.substeps,
             "equations": "weak form, test functions (1 - s^2)^4",
             "test_width": self.test_width,
             "test_width_seconds": self.test_width * self.interval,
@@ -279,6 +291,52 @@ def joint_positions(coordinates: tuple[AbstractCoordinate, ...], x: np.ndarray) 
     return np.unwrap(q, axis=1) if q.size else q
 
 
+def periodic_joints(joints: JointMap, x: ArrayLike) -> np.ndarray:
+    """Which joints of a `JointMap` are angles: those a turn of `2 pi` maps to the same keypoints
+    (tested at the configuration of keypoints `x`, `(k,)`). `(m,)` booleans."""
+    q = joints.joints(jnp.asarray(x, dtype=float))
+    base = joints.keypoints(q)
+    turned = jax.vmap(lambda e: joints.keypoints(q + 2 * math.pi * e))(jnp.eye(joints.num_joints))
+    tolerance = 1e-6 * (1.0 + float(jnp.max(jnp.abs(base))))
+    return np.asarray(jnp.max(jnp.abs(turned - base[None]), axis=1) <= tolerance)
+
+
+@eqx.filter_jit
+def _to_joints(joints, x):
+    return jax.vmap(joints.joints)(x)
+
+
+@eqx.filter_jit
+def _to_keypoints(joints, q, qd, qdd):
+    def one(q, qd, qdd):
+        velocity = lambda a, b: jax.jvp(joints.keypoints, (a,), (b,))[1]  # noqa: E731
+        x, xd = jax.jvp(joints.keypoints, (q,), (qd,))
+        return x, xd, jax.jvp(velocity, (q, qd), (qd, qdd))[1]  # DF qdd + D2F[qd, qd]
+
+    return jax.vmap(one)(q, qd, qdd)
+
+
+def smooth_in_joints(
+    choice: SmoothingChoice, joints: JointMap, x: ArrayLike
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """`choice.smooth` done on the joint coordinates of `joints` (angles unwrapped along each run) and
+    mapped to the keypoints: `x = F(q)`, `xd = DF(q) qd`, `xdd = DF(q) qdd + D2F(q)[qd, qd]`.
+
+    A polynomial in time holds a joint angle over the window where it cannot hold the arc that a
+    keypoint traces on a link turning fast (a third of a radian per sample or more); the result also
+    keeps the constraints exactly.
+
+    **Returns:** three arrays of shape `(runs, len(choice.grid(T)), k)`.
+    """
+    x = np.asarray(x, dtype=float)
+    runs, samples, k = x.shape
+    q = np.asarray(_to_joints(joints, jnp.asarray(x.reshape(-1, k)))).reshape(runs, samples, -1)
+    q = np.where(periodic_joints(joints, x[0, 0]), np.unwrap(q, axis=1), q)
+    m = q.shape[-1]
+    smoothed = (jnp.asarray(a.reshape(-1, m)) for a in choice.smooth(q))
+    return tuple(np.asarray(a).reshape(runs, -1, k) for a in _to_keypoints(joints, *smoothed))
+
+
 def _block_means(u: np.ndarray, starts: np.ndarray, length: int) -> np.ndarray:
     """Means of `u` `(runs, T, l)` over `[start, start + length)` for each start (clipped to the run)."""
     cumulative = np.concatenate([np.zeros_like(u[:, :1]), np.cumsum(u, axis=1)], axis=1)
@@ -289,7 +347,11 @@ def _block_means(u: np.ndarray, starts: np.ndarray, length: int) -> np.ndarray:
 
 
 def prepare(
-    x: np.ndarray, u: np.ndarray, choice: SmoothingChoice, coordinates: tuple[AbstractCoordinate, ...]
+    x: np.ndarray,
+    u: np.ndarray,
+    choice: SmoothingChoice,
+    coordinates: tuple[AbstractCoordinate, ...],
+    joints: JointMap | None = None,
 ) -> Prepared:
     """Smooth the runs, keep every `choice.step`-th sample, and compute their unwrapped joint
     coordinates.
@@ -299,10 +361,12 @@ def prepare(
     - `x`: measured positions `(runs, T, k)`; `u`: controls `(runs, T, l)`, each held until the next
       sample.
     - `choice`: the `SmoothingChoice`; `coordinates`: the joint coordinates.
+    - `joints`: a `JointMap` to smooth in its joint coordinates (`smooth_in_joints`); `None` smooths
+      the keypoints.
     """
     x = np.asarray(x, dtype=float)
     u = np.asarray(u, dtype=float)
-    xs, xds, xdds = choice.smooth(x)
+    xs, xds, xdds = choice.smooth(x) if joints is None else smooth_in_joints(choice, joints, x)
     grid = choice.grid(x.shape[1])
     step = choice.step
     q = joint_positions(tuple(coordinates), xs)
