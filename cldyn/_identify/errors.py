@@ -160,9 +160,8 @@ def rollout_errors(
 ) -> tuple[np.ndarray, np.ndarray, int, int]:
     """Keypoint position error over time of rollouts from the first kept state of every run, with the
     controls held between kept samples (`data.u_hold`), each interval integrated in `substeps` steps.
-    A run's error ends before its first excluded
-    sample (a joint at its limit, which the model does not know): NaN from there on. A rollout that
-    turns non-finite before that has an infinite error.
+    A run's error ends before its first excluded sample (a joint at its limit, which the model does not
+    know): NaN from there on. A rollout that turns non-finite before that has an infinite error.
 
     **Returns:** `(ts, error (runs, T, keypoints), unconverged initial-state fits, diverged rollouts)`.
     """
