@@ -40,7 +40,7 @@ import numpy as np
 from .._coordinates import AbstractCoordinate, HingeAngle, JointMap
 from .._data import Sequences
 from .._system import ConstrainedLagrangian
-from .smoothing import Smoothing, savitzky_golay
+from .smoothing import Smoothing, savitzky_golay, to_keypoints, unwrapped_joints
 
 _MAX_ENDPOINTS = 40  # window ends per run: the number of windows must not grow with the sampling rate
 
@@ -303,11 +303,9 @@ def energy_balance(
     if joints is None:
         smooth, va, vb, vc = _smoothed(x, window, order, dt, instrumented)
     else:
-        angles = np.asarray(jax.vmap(joints.joints)(flat(x))).reshape(runs, samples, -1)
-        angles = np.where(np.array(hinges), np.unwrap(angles, axis=1), angles)
+        angles = unwrapped_joints(joints, x)
         q_smooth, *q_velocities = _smoothed(angles, window, order, dt, instrumented)
-        place = jax.jit(jax.vmap(lambda p, w: jax.jvp(joints.keypoints, (p,), (w,))))
-        mapped = [place(flat(q_smooth), flat(v)) for v in q_velocities]
+        mapped = [to_keypoints(joints, flat(q_smooth), flat(v)) for v in q_velocities]
         smooth = np.asarray(mapped[0][0]).reshape(runs, inner, -1)
         va, vb, vc = (np.asarray(tangent).reshape(runs, inner, -1) for _, tangent in mapped)
     held = u[:, half : half + inner]

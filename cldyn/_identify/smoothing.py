@@ -306,6 +306,21 @@ def _to_joints(joints, x):
     return jax.vmap(joints.joints)(x)
 
 
+def unwrapped_joints(joints: JointMap, x: ArrayLike) -> np.ndarray:
+    """The joint coordinates `(runs, T, m)` of `joints` at keypoints `x` `(runs, T, k)`, its angles
+    (`periodic_joints`) unwrapped along each run."""
+    x = np.asarray(x, dtype=float)
+    runs, samples, k = x.shape
+    q = np.asarray(_to_joints(joints, jnp.asarray(x.reshape(-1, k)))).reshape(runs, samples, -1)
+    return np.where(periodic_joints(joints, x[0, 0]), np.unwrap(q, axis=1), q)
+
+
+@eqx.filter_jit
+def to_keypoints(joints, q, qd):
+    """Positions and velocities of the keypoints, `F(q)` and `DF(q) qd`, for joints `q`, `qd` `(n, m)`."""
+    return jax.vmap(lambda a, b: jax.jvp(joints.keypoints, (a,), (b,)))(q, qd)
+
+
 @eqx.filter_jit
 def _to_keypoints(joints, q, qd, qdd):
     def one(q, qd, qdd):
@@ -329,9 +344,8 @@ def smooth_in_joints(
     **Returns:** three arrays of shape `(runs, len(choice.grid(T)), k)`.
     """
     x = np.asarray(x, dtype=float)
-    runs, samples, k = x.shape
-    q = np.asarray(_to_joints(joints, jnp.asarray(x.reshape(-1, k)))).reshape(runs, samples, -1)
-    q = np.where(periodic_joints(joints, x[0, 0]), np.unwrap(q, axis=1), q)
+    runs, _, k = x.shape
+    q = unwrapped_joints(joints, x)
     m = q.shape[-1]
     smoothed = (jnp.asarray(a.reshape(-1, m)) for a in choice.smooth(q))
     return tuple(np.asarray(a).reshape(runs, -1, k) for a in _to_keypoints(joints, *smoothed))
