@@ -18,10 +18,12 @@ listed. Every cell is reported, misses included.
 
 Writes benchmarks/results/identify.json and identify.md; prints the JSON. While it runs, each cell is
 appended to identify.jsonl as it finishes: an interrupted run resumes from it (and a partial run, with
---only and the like, from identify.json), --fresh starts over.
+--only and the like, from identify.json), --fresh starts over, and --rerun runs the selected cells again
+while every other cell keeps its row (after a change that concerns some of them).
 
     python benchmarks/identify.py                 # everything (hours on 2 cores)
     python benchmarks/identify.py --only pendulum_tip --dt 0.002 --noise 0.001
+    python benchmarks/identify.py --only double_pendulum --dt 0.02 --rerun   # refresh these cells
 """
 
 import argparse
@@ -372,15 +374,25 @@ def main():
     parser.add_argument("--dt", nargs="+", type=float, help="sampling intervals")
     parser.add_argument("--noise", nargs="+", type=float, help="noise levels")
     parser.add_argument("--fresh", action="store_true", help="ignore the results of an earlier run")
+    parser.add_argument(
+        "--rerun",
+        action="store_true",
+        help="run the selected cells again (resuming an interrupted rerun), keeping the other cells' rows",
+    )
     args = parser.parse_args()
+    if args.fresh and args.rerun:
+        parser.error("--fresh drops every earlier cell and --rerun keeps the unselected ones: choose one")
     journal = RESULTS / "identify.jsonl"
     done = {}
     if args.fresh:
         journal.unlink(missing_ok=True)
     else:
-        # the cells of the last complete run, and those of an interrupted one after it
+        # the cells of the last complete run (less those to run again), and those of an interrupted one
         if (RESULTS / "identify.json").exists():
             done = {row["key"]: row for row in json.loads((RESULTS / "identify.json").read_text())["cells"]}
+        if args.rerun:
+            selected = {key(cell) for cell in cells(args)}
+            done = {k: row for k, row in done.items() if k not in selected}
         if journal.exists():
             done |= {row["key"]: row for row in map(json.loads, journal.read_text().splitlines())}
     started = time.perf_counter()
