@@ -19,8 +19,8 @@ from jaxtyping import ArrayLike, Float
 
 import cldyn
 from cldyn._constraint import Anchor, Distance, FixedCoordinate, Stack
-from cldyn._identify.base import add_dissipation
 
+from ._balance import add_checked_balance, balance_entry
 from ._controls import _place_controls
 from ._data import ImageSequences
 from ._evaluate import json_number, predict_runs, prediction_threshold, valid_prediction_time
@@ -325,7 +325,8 @@ class ImageIdentification:
     - `energy_spread`: how far the actuated joints' own energy scales disagree (`energy_scale`'s
       `spread`, 1 for one actuated joint): far from 1, the values in MuJoCo's units are unreliable.
     - `model`: the KeyCLD model with the effects added and the dynamics refitted (float64 dynamics);
-      with `add_balance`, the balance's damping added after the refit.
+      with `add_balance`, the balance's damping that passed the held-out rollout test added after the
+      refit.
     - `images`: on the frames' validation runs (left out of the identification), the VPT (mean and
       median), the image MSE over all their frames and its mean over the runs frame by frame
       (`mse_over_time`) of the model `before` and `after` (and `refined`, with `refine`), with the
@@ -414,8 +415,10 @@ def identify(
       them. It is reported beside the detections (`ImageIdentification.balance`).
     - `add_balance`: also add to the model, as a `cldyn.JointDamping`, the damping the balance finds
       at each joint whose interval lies above zero and where no damping was detected (an effect with
-      `"source": "energy balance"`), before the image scores and `refine`. Unlike the detections, it
-      passes no held-out rollout check: the images' before and after are its test.
+      `"source": "energy balance"`), before the image scores and `refine`, where it passes the test
+      `cldyn.identify` puts to its own detections: it must lower the keypoints' held-out rollout error
+      on identify's held-out runs (each joint's against the others' alone, then all against none);
+      a joint that does not is named in the warnings and not added.
     - `progress_meter`: a `cldyn.AbstractProgressMeter`.
     - `options`: passed on to `cldyn.identify` (`effects`, `criteria`, `seed`, ...). The learnt
       potential is held fixed in the refit (`refit_potential=False`) unless given otherwise.
@@ -485,18 +488,23 @@ def identify(
         found = cldyn.energy_balance(
             dynamics, data, joint_coordinates=structure.coordinates, joints=structure.joint_map, seed=seed
         )
-        balanced = tuple(
-            _balance_entry(found, j, structure, scale, metres) for j in range(len(found.joint_names))
-        )
+        def convert(where, kind, value):
+            return _convert("joint_damping", kind, value, _joules_at(where, scale), metres)
+
+        balanced = tuple(balance_entry(found, j, structure, convert) for j in range(len(found.joint_names)))
     dynamics_after = result.model
     if add_balance:
-        damped = {e["where"] for e in effects if e["name"] == "joint_damping"}
-        added = [b for b in balanced if b["detected"] and b["where"] not in damped]
-        if added:
-            coordinates = [structure.coordinates[b["where"]] for b in added]
-            damping = jnp.asarray([b["value_model"] for b in added], dtype=jnp.float64)
-            dynamics_after = add_dissipation(dynamics_after, cldyn.JointDamping(coordinates, damping))
-            effects += [{"name": "joint_damping", **b, "source": "energy balance"} for b in added]
+        dynamics_after, added, notes = add_checked_balance(
+            dynamics_after,
+            balanced,
+            effects,
+            structure,
+            data,
+            result.settings["held_out_runs"],
+            options.get("smoothing"),
+        )
+        effects += added
+        result = dataclasses.replace(result, warnings=tuple(result.warnings) + tuple(notes))
     augmented = KeyCLD(model.estimator, dynamics_after, model.renderer)
     refined = None
     if refine is not None:
@@ -514,22 +522,6 @@ def identify(
         refined,
         balanced,
     )
-
-
-def _balance_entry(found, j: int, structure: JointStructure, scale: dict, metres: float) -> dict:
-    """Joint `j` of a `cldyn.EnergyBalance`, in the model's units and converted as a detected damping."""
-    where = found.joint_names[j]
-    kind = structure.kinds[structure.names.index(where)]
-    at = _joules_at(where, scale)
-    convert = lambda v: _convert("joint_damping", kind, float(v), at, metres)  # noqa: E731
-    return {
-        "where": where,
-        "value": convert(found.damping[j]),
-        "ci": tuple(convert(c) for c in found.interval[j]),
-        "value_model": float(found.damping[j]),
-        "ci_model": tuple(float(c) for c in found.interval[j]),
-        "detected": where in found.detected,
-    }
 
 
 def _single(model):

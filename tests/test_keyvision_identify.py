@@ -142,3 +142,50 @@ def test_controls_are_placed_on_the_model_inputs_by_actuator_name():
         _place_controls(frames, ("shoulder", "wrist"), 2)
     with pytest.raises(ValueError, match="inputs names 1 actuators; the model has 2 inputs"):
         _place_controls(frames, ("elbow",), 2)
+
+
+def _reference_runs(damping, *, runs=8, seconds=2.0, dt=0.01, seed=3):
+    """The acrobot of tests/helpers.py (its damping a joint-space force written there, not cldyn's
+    term), from random rest states, one random constant control per run."""
+    from helpers import reference_systems, simulate_reference
+
+    system, _, reference = reference_systems()["acrobot"]
+    rng = np.random.default_rng(seed)
+    samples = int(round(seconds / dt)) + 1
+    q0 = rng.uniform(-2.5, 2.5, size=(runs, 2))
+    us = np.repeat(rng.uniform(-1.0, 1.0, size=(runs, 1, system.num_inputs)), samples, axis=1)
+    force = lambda q, qd: -jnp.asarray(damping) * qd  # noqa: E731
+    run = jax.jit(
+        jax.vmap(lambda a, u: simulate_reference(reference, a, jnp.zeros(2), u, dt, samples, force=force)[0])
+    )
+    return system, cldyn.Sequences(np.asarray(run(jnp.asarray(q0), jnp.asarray(us))), us, dt)
+
+
+@pytest.mark.slow
+def test_the_balances_damping_is_added_only_where_it_lowers_the_held_out_rollout_error():
+    """`add_balance`'s test, the one `cldyn.identify` puts to its detections: the true damping passes;
+    a damping the runs do not have is named and left out, alone or beside a true one."""
+    from keyvision._balance import add_checked_balance
+
+    def entries(**values):
+        return [{"where": w, "value": v, "value_model": v, "detected": True} for w, v in values.items()]
+
+    system, elbow_only = _reference_runs((0.0, 0.03))
+    structure = keyvision.joint_structure(system.constraint, elbow_only.x[0], ["shoulder", "elbow"])
+    held = [0, 1, 2, 3]
+    model, added, notes = add_checked_balance(system, entries(elbow=0.03), [], structure, elbow_only, held)
+    assert [(a["where"], a["source"]) for a in added] == [("elbow", "energy balance")] and not notes
+    assert model.dissipation is not None
+    # a false shoulder damping beside the true elbow's: the elbow's is kept, the shoulder's is named
+    model, added, notes = add_checked_balance(
+        system, entries(shoulder=0.05, elbow=0.03), [], structure, elbow_only, held
+    )
+    assert [a["where"] for a in added] == ["elbow"], notes
+    assert len(notes) == 1 and "joint_damping[shoulder]" in notes[0] and "not added" in notes[0]
+    # on damping-free runs, a damping is not added at all
+    _, free = _reference_runs((0.0, 0.0))
+    model, added, notes = add_checked_balance(system, entries(elbow=0.03), [], structure, free, held)
+    assert added == [] and model is system and "joint_damping[elbow]" in notes[0]
+    # where the force residual found a damping, the balance's is not added (and nothing is rolled out)
+    found = [{"name": "joint_damping", "where": "elbow"}]
+    assert add_checked_balance(system, entries(elbow=0.03), found, structure, free, held) == (system, [], [])

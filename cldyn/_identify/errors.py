@@ -7,12 +7,14 @@ import jax.numpy as jnp
 import numpy as np
 
 from .._control import ConstantControl
+from .._coordinates import AbstractCoordinate, JointMap
+from .._data import Sequences
 from .._integrate import project_state
 from .._solver import DynamicsTerm
 from .._stabilisation import Projection
 from .._system import ConstrainedLagrangian
 from .result import Errors
-from .smoothing import Prepared, TestFunctions
+from .smoothing import Prepared, Smoothing, TestFunctions, prepare
 
 
 @eqx.filter_jit
@@ -212,6 +214,30 @@ def errors(
         kept = np.ones(error.shape[:2], dtype=bool)
     accel_rmse = float(np.sqrt(np.sum(error[kept] ** 2) / max(error[kept].size, 1)))
     ts, error, unconverged, diverged = rollout_errors(model, data, horizon, substeps=substeps)
+    return Errors(accel_rmse, _rmse(error), float(ts[-1]), unconverged, diverged), ts, error
+
+
+def _rmse(error: np.ndarray) -> float:
+    """The RMS of a rollout error over its valid (not NaN) entries; infinite for a diverged rollout."""
     valid = ~np.isnan(error)
-    rollout_rmse = float(np.sqrt(np.mean(error[valid] ** 2))) if valid.any() else float("nan")
-    return Errors(accel_rmse, rollout_rmse, float(ts[-1]), unconverged, diverged), ts, error
+    return float(np.sqrt(np.mean(error[valid] ** 2))) if valid.any() else float("nan")
+
+
+def held_out_rollout_rmse(
+    models: list[ConstrainedLagrangian],
+    data: Sequences,
+    runs,
+    *,
+    coordinates: tuple[AbstractCoordinate, ...],
+    joints: JointMap | None = None,
+    smoothing: Smoothing = Smoothing(),
+    horizon: float = 1.0,
+) -> list[float]:
+    """`identify`'s held-out rollout error (`Errors.rollout_rmse_1s`) of each of `models` on the runs
+    `runs` of `data`, smoothed and integrated as `identify` does with the same arguments: for a change
+    made to a model beside `identify` (the energy balance's damping, say) to pass `identify`'s test."""
+    x = np.asarray(data.x, dtype=float)
+    choice = smoothing.choose(x, data.dt)
+    held = prepare(x, np.asarray(data.u, dtype=float), choice, tuple(coordinates), joints)
+    held = held.take(np.asarray(runs))
+    return [_rmse(rollout_errors(m, held, horizon, substeps=choice.substeps)[1]) for m in models]
