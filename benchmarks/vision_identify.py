@@ -380,6 +380,16 @@ def main() -> None:
             "",
         ]
         lines += [f"- {label}: {named}" for label, named in asks]
+    # the balance's damping that `--add-balance` left out: it did not lower the held-out rollout error
+    refused = [
+        f"- {label}: {warning}"
+        for label, row in zip(labels, rows + negatives)
+        for warning in row.get("warnings", [])
+        if warning.startswith(("the energy balance's", "with the energy balance's"))
+    ]
+    if refused:
+        lines += ["", "The balance's damping that the held-out rollout test left out (`--add-balance`):"]
+        lines += [""] + refused
     lines += ["", "Effect-free data (negative control):", ""]
     for scene in scenes:
         groups = {
