@@ -488,6 +488,7 @@ def identify(
         found = cldyn.energy_balance(
             dynamics, data, joint_coordinates=structure.coordinates, joints=structure.joint_map, seed=seed
         )
+
         def convert(where, kind, value):
             return _convert("joint_damping", kind, value, _joules_at(where, scale), metres)
 

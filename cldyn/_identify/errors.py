@@ -218,7 +218,8 @@ def errors(
 
 
 def _rmse(error: np.ndarray) -> float:
-    """The RMS of a rollout error over its valid (not NaN) entries; infinite for a diverged rollout."""
+    """The RMS of a rollout error over its valid (not NaN) entries: infinite for a diverged rollout,
+    NaN where no entry is valid."""
     valid = ~np.isnan(error)
     return float(np.sqrt(np.mean(error[valid] ** 2))) if valid.any() else float("nan")
 
