@@ -238,7 +238,7 @@ def held_out_rollout_rmse(
     `runs` of `data`, smoothed and integrated as `identify` does with the same arguments: for a change
     made to a model beside `identify` (the energy balance's damping, say) to pass `identify`'s test."""
     x = np.asarray(data.x, dtype=float)
-    choice = smoothing.choose(x, data.dt)
-    held = prepare(x, np.asarray(data.u, dtype=float), choice, tuple(coordinates), joints)
-    held = held.take(np.asarray(runs))
+    choice = smoothing.choose(x, data.dt)  # from every run, as identify chooses it
+    runs = np.asarray(runs)  # each run is smoothed on its own: only the held-out ones are needed
+    held = prepare(x[runs], np.asarray(data.u, dtype=float)[runs], choice, tuple(coordinates), joints)
     return [_rmse(rollout_errors(m, held, horizon, substeps=choice.substeps)[1]) for m in models]
