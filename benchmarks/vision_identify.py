@@ -18,12 +18,19 @@ previous rows); prints the JSON.
     python benchmarks/vision_identify.py --scenes acrobot --attributes stock --frames 300   # 3 s runs
     python benchmarks/vision_identify.py --scenes acrobot --attributes stock --frames 300 --seeds 0 \
         --model acrobot=benchmarks/results/vision_models/acrobot-camera4   # another model, its camera
+    python benchmarks/vision_identify.py --scenes acrobot --attributes stock --frames 300 --seeds 0 \
+        --model acrobot=benchmarks/results/vision_models/acrobot-structured --stock-seeds 7 1 2 --oracle
 
 The stock cases render dm_control's own physics under KeyCLD's camera and look
 (`cldyn.mujoco.keycld_scene(name, physics="stock")`); the model's inputs take the frames' controls by
 actuator name (`keyvision.identify(inputs=)`: the stock acrobot drives the elbow only). Frames come
 through the camera each model was trained on (its `keyvision.json`'s `data.supersample`); a row whose
 model is not the scene's committed one names it.
+
+`--oracle` runs no identification: for the selected damping rows already written (a row of the same
+runs, model and `--add-balance`), it adds the true damping to the row's learnt model and scores it on
+the row's held-out runs as identify's own additions are scored. What the image criteria give with the
+exact value separates an error of the identification from a limit of the learnt model.
 """
 
 import argparse
@@ -143,6 +150,73 @@ def _case(scene: str, joints: dict | None, seed: int, args, *, stock: bool = Fal
     }
 
 
+def _truth(row: dict) -> dict[str, float]:
+    """The true viscous damping of a row per joint (MuJoCo's units); empty where the row's effect is
+    not a damping."""
+    if row["attribute"].startswith("stock physics"):
+        _, effect, truth = STOCK[row["scene"]]
+        return dict(truth) if effect == "joint_damping" else {}
+    return {row["joint"]: row["truth"]} if row["attribute"] == "damping" else {}
+
+
+def _oracle(row: dict, args) -> dict:
+    """The row's learnt model with the true damping added at every joint, scored on the row's held-out
+    runs as `keyvision.identify` scores its additions (VPT, image MSE, before and after). The true value
+    goes to the model's units by the row's own conversion: the energy balance's value over its value in
+    the model's units, at each joint."""
+    import equinox as eqx
+    import jax
+    import jax.numpy as jnp
+    import numpy as np
+
+    import cldyn.mujoco
+    import keyvision
+    from cldyn._identify.base import add_dissipation
+    from keyvision._controls import _place_controls
+    from keyvision._identify import _image_errors
+
+    truth = _truth(row)
+    scale = {b["where"]: b["value"] / b["value_model"] for b in row.get("balance", [])}
+    if not truth or not set(truth) <= set(scale):
+        raise SystemExit(f"--oracle: the row {row['scene']}, {row['attribute']} has no damping or no balance")
+    stock = row["attribute"].startswith("stock physics")
+    source = f"keycld/{row['scene']}" + (":stock" if stock else "")
+    joints = None if stock else {row["joint"]: {"damping": row["truth"]}}
+    xml = cldyn.mujoco.modify_scene(source, joints=joints) if joints else source
+    model, spec = keyvision.load_model(ROOT / _model(row))
+    protocol = keyvision.RenderProtocol(
+        runs=args.runs,
+        validation_runs=args.validation_runs,
+        frames=_frames(row),
+        supersample=row.get("supersample", 1),
+    )
+    frames = keyvision.render(xml, protocol=protocol, seed=row.get("seed", STOCK_SEED), workers=1)
+    inputs = keyvision.scene_actuators(spec["data"]["scene"])
+    frames = _place_controls(frames, inputs, model.dynamics.num_inputs)
+    measured, held_out = frames.split()
+    dynamics = jax.tree.map(lambda a: a.astype(jnp.float64) if eqx.is_inexact_array(a) else a, model.dynamics)
+    x = np.asarray(keyvision.encode_sequences(model, keyvision.ImageSequences.from_frames(measured)).x, float)
+    structure = keyvision.joint_structure(dynamics.constraint, x, list(frames.info.get("joint_names", [])))
+    values = {joint: value / scale[joint] for joint, value in truth.items()}
+    damping = cldyn.JointDamping(
+        [structure.coordinates[joint] for joint in values], jnp.asarray(list(values.values()), jnp.float64)
+    )
+    oracle = keyvision.KeyCLD(model.estimator, add_dissipation(dynamics, damping), model.renderer)
+    images = _image_errors(model, oracle, held_out)
+    jax.clear_caches()
+
+    def head(record):
+        return float(np.mean(record["mse_over_time"][:PAPER_FRAMES]))
+
+    return {
+        "values": truth,
+        "values_model": values,
+        "vpt": [images[k]["vpt"]["mean"] for k in ("before", "after")],
+        "mse": [images[k]["mse"] for k in ("before", "after")],
+        "mse_head": [head(images[k]) for k in ("before", "after")],
+    }
+
+
 def _balance(row: dict) -> str:
     """The energy balance's damping per joint, for the table."""
     return (
@@ -172,6 +246,23 @@ def _length(row: dict) -> str:
     if "attribute" in row and row.get("seed", STOCK_SEED) != STOCK_SEED:  # a case's runs of another seed
         label += f", seed {row['seed']}"
     return label
+
+
+def _selected(row: dict, args) -> bool:
+    """Whether `args` select `row`: its scene, runs' length, model and options, and its case."""
+    scene = row["scene"]
+    if scene not in args.scenes or _frames(row) != args.frames:
+        return False
+    if _model(row) != repo_path(args.models[scene]) or row.get("add_balance", False) != args.add_balance:
+        return False
+    if row["attribute"].startswith("stock physics"):
+        chosen = args.stock and (not args.attributes or "stock" in args.attributes)
+        return chosen and row.get("seed", STOCK_SEED) in args.stock_seeds
+    if args.attributes and row["attribute"] not in args.attributes:
+        return False
+    return row.get("seed", STOCK_SEED) == STOCK_SEED and (
+        not args.values or f"{row['joint']}={row['truth']:g}" in args.values
+    )
 
 
 def _model(row: dict) -> str:
@@ -220,6 +311,12 @@ def main() -> None:
         "(keyvision.identify(add_balance=True)); such rows are kept beside the others",
     )
     parser.add_argument(
+        "--oracle",
+        action="store_true",
+        help="identify nothing: add the true damping to the selected rows' models and score them (the "
+        "rows must exist; see above)",
+    )
+    parser.add_argument(
         "--attributes", nargs="+", help="only the cases that inject these MJCF attributes (all by default)"
     )
     parser.add_argument(
@@ -234,7 +331,7 @@ def main() -> None:
 
     jax.config.update("jax_enable_x64", True)
     rows, negatives = [], []
-    for scene, joint, attribute, value, effect in CASES:
+    for scene, joint, attribute, value, effect in CASES if not args.oracle else ():
         if scene not in args.scenes or (args.attributes and attribute not in args.attributes):
             continue
         if args.values and f"{joint}={value:g}" not in args.values:
@@ -254,7 +351,7 @@ def main() -> None:
                 **found,
             }
         )
-    for scene, (differs, effect, truth) in STOCK.items():
+    for scene, (differs, effect, truth) in STOCK.items() if not args.oracle else ():
         if scene not in args.scenes or not args.stock or (args.attributes and "stock" not in args.attributes):
             continue
         for seed in args.stock_seeds:
@@ -277,7 +374,7 @@ def main() -> None:
                     **found,
                 }
             )
-    for scene in args.scenes:
+    for scene in args.scenes if not args.oracle else ():
         for seed in range(args.seeds):
             negatives.append({"scene": scene, "seed": seed, **_case(scene, None, seed, args)})
     previous = RESULTS / "vision_identify.json"
@@ -297,6 +394,13 @@ def main() -> None:
         ran = {case(r) for r in rows} | {negative(n) for n in negatives}
         rows = [r for r in earlier.get("cases", []) if case(r) not in ran] + rows
         negatives = [n for n in earlier.get("negatives", []) if negative(n) not in ran] + negatives
+    if args.oracle:
+        chosen = [r for r in rows if _selected(r, args) and _truth(r) and r.get("balance")]
+        if not chosen:
+            raise SystemExit("--oracle: no damping row of these runs, model and options was written")
+        for row in chosen:
+            row["oracle"] = _oracle(row, args)
+            print(_length(row).lstrip(", ") or row["scene"], row["oracle"], file=sys.stderr, flush=True)
     order = list(MODELS)
     keys = [c[:4] for c in CASES]
     rows.sort(
@@ -390,6 +494,19 @@ def main() -> None:
     if refused:
         lines += ["", "The balance's damping that the held-out rollout test left out (`--add-balance`):"]
         lines += [""] + refused
+    oracles = [(label, row["oracle"]) for label, row in zip(labels, rows) if "oracle" in row]
+    if oracles:
+        lines += [
+            "",
+            "The learnt model with the true damping added (`--oracle`: no identification), held-out VPT and "
+            f"image MSE over the first {PAPER_FRAMES} frames, before -> after:",
+            "",
+        ]
+        lines += [
+            f"- {label}: VPT {o['vpt'][0]:.3f} -> {o['vpt'][1]:.3f}, image MSE {o['mse_head'][0]:.4g} -> "
+            f"{o['mse_head'][1]:.4g} ({o['mse_head'][1] / o['mse_head'][0] - 1:+.1%})"
+            for label, o in oracles
+        ]
     lines += ["", "Effect-free data (negative control):", ""]
     for scene in scenes:
         groups = {
