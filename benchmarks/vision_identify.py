@@ -494,7 +494,12 @@ def main() -> None:
     if refused:
         lines += ["", "The balance's damping that the held-out rollout test left out (`--add-balance`):"]
         lines += [""] + refused
-    oracles = [(label, row["oracle"]) for label, row in zip(labels, rows) if "oracle" in row]
+    # the row each score belongs to (not what it added: the oracle adds the truth alone)
+    oracles = [
+        (label.replace(", the balance's damping added", " (the --add-balance row)"), row["oracle"])
+        for label, row in zip(labels, rows)
+        if "oracle" in row
+    ]
     if oracles:
         lines += [
             "",
