@@ -90,24 +90,36 @@ def _mse_head(images: dict, frames: int = PAPER_FRAMES) -> str:
     )
 
 
-def _case(scene: str, joints: dict | None, seed: int, args, *, stock: bool = False) -> dict:
-    import jax
-
+def _rendered(scene: str, joints: dict | None, seed: int, length: int, model_dir, args, stock: bool):
+    """The scene's model and the runs of a case: `(model, spec, frames, inputs)`, the frames rendered
+    (or loaded from the cache) through the camera the model was trained on (MuJoCo's render, or one
+    averaging samples), `inputs` the actuators of the scene it learnt from (the frames' controls are
+    placed by name)."""
     import cldyn.mujoco
     import keyvision
     from keyvision._files import trained_supersample
 
     source = f"keycld/{scene}" + (":stock" if stock else "")
     xml = cldyn.mujoco.modify_scene(source, joints=joints) if joints else source
-    model, spec = keyvision.load_model(args.models[scene])
-    # the frames of the camera the model was trained on (MuJoCo's render, or one averaging samples)
-    supersample = trained_supersample(spec)
+    model, spec = keyvision.load_model(model_dir)
     protocol = keyvision.RenderProtocol(
-        runs=args.runs, validation_runs=args.validation_runs, frames=args.frames, supersample=supersample
+        runs=args.runs,
+        validation_runs=args.validation_runs,
+        frames=length,
+        supersample=trained_supersample(spec),
     )
     frames = keyvision.render(xml, protocol=protocol, seed=seed, workers=1)
-    # the model's inputs are the actuators of the scene it learnt from: the frames' controls by name
-    inputs = keyvision.scene_actuators(spec["data"]["scene"])
+    return model, spec, frames, keyvision.scene_actuators(spec["data"]["scene"])
+
+
+def _case(scene: str, joints: dict | None, seed: int, args, *, stock: bool = False) -> dict:
+    import jax
+
+    import keyvision
+    from keyvision._files import trained_supersample
+
+    model, spec, frames, inputs = _rendered(scene, joints, seed, args.frames, args.models[scene], args, stock)
+    supersample = trained_supersample(spec)
     refine = None
     if args.refine_steps and (joints or stock):
         from keyvision._identify import joint_stage
@@ -150,10 +162,15 @@ def _case(scene: str, joints: dict | None, seed: int, args, *, stock: bool = Fal
     }
 
 
+def _is_stock(row: dict) -> bool:
+    """Whether the row is a stock-physics case (dm_control's own physics, nothing injected)."""
+    return row["attribute"].startswith("stock physics")
+
+
 def _truth(row: dict) -> dict[str, float]:
     """The true viscous damping of a row per joint (MuJoCo's units); empty where the row's effect is
     not a damping."""
-    if row["attribute"].startswith("stock physics"):
+    if _is_stock(row):
         _, effect, truth = STOCK[row["scene"]]
         return dict(truth) if effect == "joint_damping" else {}
     return {row["joint"]: row["truth"]} if row["attribute"] == "damping" else {}
@@ -169,7 +186,7 @@ def _oracle(row: dict, args) -> dict:
     import jax.numpy as jnp
     import numpy as np
 
-    import cldyn.mujoco
+    import cldyn
     import keyvision
     from cldyn._identify.base import add_dissipation
     from keyvision._controls import _place_controls
@@ -179,19 +196,12 @@ def _oracle(row: dict, args) -> dict:
     scale = {b["where"]: b["value"] / b["value_model"] for b in row.get("balance", [])}
     if not truth or not set(truth) <= set(scale):
         raise SystemExit(f"--oracle: the row {row['scene']}, {row['attribute']} has no damping or no balance")
-    stock = row["attribute"].startswith("stock physics")
-    source = f"keycld/{row['scene']}" + (":stock" if stock else "")
+    stock = _is_stock(row)
     joints = None if stock else {row["joint"]: {"damping": row["truth"]}}
-    xml = cldyn.mujoco.modify_scene(source, joints=joints) if joints else source
-    model, spec = keyvision.load_model(ROOT / _model(row))
-    protocol = keyvision.RenderProtocol(
-        runs=args.runs,
-        validation_runs=args.validation_runs,
-        frames=_frames(row),
-        supersample=row.get("supersample", 1),
+    seed = row.get("seed", STOCK_SEED)
+    model, _, frames, inputs = _rendered(
+        row["scene"], joints, seed, _frames(row), ROOT / _model(row), args, stock
     )
-    frames = keyvision.render(xml, protocol=protocol, seed=row.get("seed", STOCK_SEED), workers=1)
-    inputs = keyvision.scene_actuators(spec["data"]["scene"])
     frames = _place_controls(frames, inputs, model.dynamics.num_inputs)
     measured, held_out = frames.split()
     dynamics = jax.tree.map(lambda a: a.astype(jnp.float64) if eqx.is_inexact_array(a) else a, model.dynamics)
@@ -255,7 +265,7 @@ def _selected(row: dict, args) -> bool:
         return False
     if _model(row) != repo_path(args.models[scene]) or row.get("add_balance", False) != args.add_balance:
         return False
-    if row["attribute"].startswith("stock physics"):
+    if _is_stock(row):
         chosen = args.stock and (not args.attributes or "stock" in args.attributes)
         return chosen and row.get("seed", STOCK_SEED) in args.stock_seeds
     if args.attributes and row["attribute"] not in args.attributes:
