@@ -25,6 +25,7 @@ from ._constraint import (
     Distance as Distance,
     FixedCoordinate as FixedCoordinate,
     FromFunction as FromFunction,
+    LinearConstraint as LinearConstraint,
     Stack as Stack,
 )
 from ._control import (

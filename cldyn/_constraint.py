@@ -106,6 +106,10 @@ def static_point(value: ArrayInput, dim: int, name: str) -> tuple[float, ...]:
     return tuple(float(v) for v in array)
 
 
+def _float_array(value) -> Array:
+    return jnp.asarray(value, dtype=float)
+
+
 def _check_index(name: str, index: int) -> None:
     if not isinstance(index, int | np.integer) or index < 0:
         raise ValueError(f"{name} must be a non-negative keypoint index, got {index!r}")
@@ -237,6 +241,59 @@ class FixedCoordinate(AbstractConstraint):
 
     def curvature(self, x: Vector, xd: Vector) -> Float[Array, " 1"]:
         return jnp.zeros(1, dtype=x.dtype)
+
+
+class LinearConstraint(AbstractConstraint):
+    """Linear constraints on the keypoints: `Phi(x) = rows @ x`.
+
+    A keypoint on a straight rail at any angle (one row, the rail's normal on that keypoint's
+    coordinates), or keypoints tied to a body that does not turn. Their Jacobian is `rows` and their
+    curvature term is zero. `FixedCoordinate` is the one-row case of a rail along a coordinate axis.
+
+    **Arguments:**
+
+    - `rows`: the constraints' coefficients, shape `(n, k)` for `k` keypoint coordinates; finite, no
+      row zero.
+
+    !!! example
+
+        ```python
+        # the cart (keypoint 0) on a rail inclined by 30 degrees, a pole (keypoint 1) on the cart
+        normal = [-np.sin(np.pi / 6), np.cos(np.pi / 6)]
+        constraint = cldyn.Stack([cldyn.LinearConstraint([[*normal, 0.0, 0.0]]), cldyn.Distance(0, 1)])
+        ```
+    """
+
+    rows: Float[Array, "n k"] = eqx.field(converter=_float_array)
+
+    def __check_init__(self):
+        if self.rows.ndim != 2 or self.rows.shape[0] == 0:
+            raise ValueError(f"LinearConstraint: rows must have shape (n, k), n >= 1; got {self.rows.shape}")
+        if isinstance(self.rows, jax.core.Tracer):
+            return  # built under a transformation (as a model's shape is): checked where built concretely
+        rows = np.asarray(self.rows)
+        if not np.all(np.isfinite(rows)) or not np.all(np.any(rows != 0, axis=1)):
+            raise ValueError("LinearConstraint: every row must be finite and not all zero")
+
+    @property
+    def num_constraints(self) -> int:
+        return self.rows.shape[0]
+
+    def _rows(self, x: Vector) -> Array:
+        if self.rows.shape[1] != x.shape[-1]:
+            raise ValueError(
+                f"LinearConstraint: rows are for {self.rows.shape[1]} coordinates, x has {x.shape[-1]}"
+            )
+        return self.rows.astype(x.dtype)
+
+    def __call__(self, x: Vector) -> Float[Array, " n"]:
+        return self._rows(x) @ x
+
+    def jacobian(self, x: Vector) -> Float[Array, "n k"]:
+        return self._rows(x)
+
+    def curvature(self, x: Vector, xd: Vector) -> Float[Array, " n"]:
+        return jnp.zeros(self.rows.shape[0], dtype=x.dtype)
 
 
 class _Segments:

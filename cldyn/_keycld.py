@@ -8,7 +8,7 @@ import jax.numpy as jnp
 from jaxtyping import PRNGKeyArray
 
 from ._baselines import SecondOrderNeuralODE
-from ._constraint import AbstractConstraint, Anchor, Distance, FixedCoordinate, Stack
+from ._constraint import AbstractConstraint, Anchor, Distance, FixedCoordinate, LinearConstraint, Stack
 from ._coordinates import AbstractCoordinate, HingeAngle, SliderPosition
 from ._custom_types import ArrayInput
 from ._input import JointInput, MLPInput
@@ -184,7 +184,8 @@ def keycld_constraint(system: str) -> AbstractConstraint:
 
 
 def constraint_entries(constraint: AbstractConstraint) -> list[dict]:
-    """A planar constraint of pivots, rods and rails as JSON entries (`model_from_spec`'s list form)."""
+    """A planar constraint of pivots, rods, rails and linear ties as JSON entries (`model_from_spec`'s
+    list form)."""
     parts = constraint.constraints if isinstance(constraint, Stack) else (constraint,)
     entries = []
     for part in parts:
@@ -196,6 +197,8 @@ def constraint_entries(constraint: AbstractConstraint) -> list[dict]:
             entries.append({"distance": [part.first, part.second]})
         elif isinstance(part, FixedCoordinate):
             entries.append({"fixed": part.keypoint, "axis": part.axis})
+        elif isinstance(part, LinearConstraint):
+            entries.append({"linear": [[float(v) for v in row] for row in part.rows]})
         else:
             raise ValueError(f"no JSON entry for a {type(part).__name__} constraint")
     return entries
@@ -204,9 +207,9 @@ def constraint_entries(constraint: AbstractConstraint) -> list[dict]:
 def _from_entries(entries: list) -> AbstractConstraint:
     parts: list[AbstractConstraint] = []
     for entry in entries:
-        if not isinstance(entry, dict) or len(set(entry) & {"anchor", "distance", "fixed"}) != 1:
+        if not isinstance(entry, dict) or len(set(entry) & {"anchor", "distance", "fixed", "linear"}) != 1:
             raise ValueError(
-                f"model spec: a constraint entry is one of anchor, distance, fixed; got {entry!r}"
+                f"model spec: a constraint entry is one of anchor, distance, fixed, linear; got {entry!r}"
             )
         try:
             if "anchor" in entry:
@@ -214,6 +217,8 @@ def _from_entries(entries: list) -> AbstractConstraint:
             elif "distance" in entry:
                 first, second = entry["distance"]
                 parts.append(Distance(int(first), int(second)))
+            elif "linear" in entry:
+                parts.append(LinearConstraint(entry["linear"]))
             else:
                 parts.append(FixedCoordinate(int(entry["fixed"]), axis=int(entry["axis"])))
         except (KeyError, TypeError, ValueError) as error:
@@ -284,8 +289,9 @@ def model_from_spec(spec: dict, *, key: PRNGKeyArray):
       kinds `constraint`, a scene of `cldyn.KEYCLD_SCENES`, or (but for `"keycld-structured"`,
       whose joints are the scene's) a list of JSON entries, one per constraint:
       `{"anchor": i, "point": [x, y]}` (`Anchor`), `{"distance": [i, j]}` (`Distance`) and
-      `{"fixed": i, "axis": a}` (`FixedCoordinate`), as `keyvision train` writes for a scene that is
-      not one of KeyCLD's (`keyvision.scene_constraint`).
+      `{"fixed": i, "axis": a}` (`FixedCoordinate`) and `{"linear": [[...], ...]}` (`LinearConstraint`,
+      its rows), as `keyvision train` writes for a scene that is not one of KeyCLD's
+      (`keyvision.scene_constraint`).
     - `key`: a `jax.random` key for the initial parameters.
 
     **Returns:** the model. A spec that lacks an entry or names an unknown kind or scene raises a

@@ -19,11 +19,13 @@ def scene_constraint(frames: Frames) -> cldyn.AbstractConstraint:
     `cldyn.mujoco.from_mjcf` reads the constraints of the scene's MJCF (`frames.info["mjcf_xml"]`)
     in the plane of motion, in metres; the camera's map (`frames.camera`) carries them to the image
     frame, in which keyvision's keypoints live. A pivot becomes the image point it is seen at
-    (`cldyn.Anchor(i, point)`), a rod stays a rod (`cldyn.Distance`) and a rail along a plane axis
-    becomes a rail along the image axis it is seen along (`cldyn.FixedCoordinate`). For KeyCLD's
-    scenes this is `cldyn.keycld_constraint` (the paper's figure 7); for any other planar chain of
-    hinges and slides it is the same structure, read from the scene, so `keyvision train` can learn
-    its dynamics from the frames without naming a constraint.
+    (`cldyn.Anchor(i, point)`), a rod stays a rod (`cldyn.Distance`), a rail along a plane axis
+    becomes a rail along the image axis it is seen along (`cldyn.FixedCoordinate`), and a rail at an
+    angle or keypoints tied to a body that does not turn (`cldyn.LinearConstraint`, `rows @ x`) keep
+    their rows, carried through the camera's map. For KeyCLD's scenes this is
+    `cldyn.keycld_constraint` (the paper's figure 7); for any other planar chain of hinges and slides
+    it is the same structure, read from the scene, so `keyvision train` can learn its dynamics from
+    the frames without naming a constraint.
 
     The map must be a similarity (a camera that looks straight at the plane, as keyvision's scenes
     do): distances in the plane are then distances in the image. The constraints are checked on the
@@ -35,7 +37,7 @@ def scene_constraint(frames: Frames) -> cldyn.AbstractConstraint:
 
     **Returns:** a `cldyn.AbstractConstraint` on the `2K` image-frame coordinates of the `K`
     keypoints (one constraint alone, or a `cldyn.Stack`). A scene whose constraints are of another
-    kind (a slide on a moving body, a rail at an angle to the image axes), whose keypoints the
+    kind (a slide on a turning body, a hinge whose anchor is no keypoint), whose keypoints the
     constraints do not hold on, or a camera map that is not a similarity raises a `ValueError` that
     says which.
 
@@ -62,7 +64,11 @@ def scene_constraint(frames: Frames) -> cldyn.AbstractConstraint:
         raise ValueError("scene_constraint: the scene has no constraints on its keypoints")
     parts = plane.constraints if isinstance(plane, cldyn.Stack) else (plane,)
     linear = _affine(frames.camera)
-    mapped = [_to_image(part, linear, frames.camera) for part in parts]
+    keypoints = frames.extras.get("keypoints")
+    if keypoints is None:
+        raise ValueError("scene_constraint: the frames carry no true keypoints (extras['keypoints'])")
+    count = np.shape(keypoints)[-1] // 2
+    mapped = [_to_image(part, linear, frames.camera, count) for part in parts]
     _check_rigid(plane, parts, frames, names)
     return mapped[0] if len(mapped) == 1 else cldyn.Stack(mapped)
 
@@ -85,7 +91,7 @@ def _affine(camera) -> np.ndarray:
     return linear
 
 
-def _to_image(part, linear: np.ndarray, camera) -> cldyn.AbstractConstraint:
+def _to_image(part, linear: np.ndarray, camera, count: int) -> cldyn.AbstractConstraint:
     if isinstance(part, cldyn.Distance):
         return cldyn.Distance(part.first, part.second)
     if isinstance(part, cldyn.Anchor):
@@ -96,22 +102,37 @@ def _to_image(part, linear: np.ndarray, camera) -> cldyn.AbstractConstraint:
     if isinstance(part, cldyn.FixedCoordinate):
         row = np.abs(linear[part.axis])  # the fixed plane coordinate in terms of the image coordinates
         seen = np.flatnonzero(row > 1e-9 * row.max())
-        if len(seen) != 1:
+        if len(seen) == 1:
+            return cldyn.FixedCoordinate(part.keypoint, axis=int(seen[0]))
+        # a rail along a plane axis that the camera sees at an angle to the image axes
+        rows = np.zeros((1, 2 * count))
+        rows[0, 2 * part.keypoint + part.axis] = 1.0
+        part = cldyn.LinearConstraint(rows)
+    if isinstance(part, cldyn.LinearConstraint):
+        # rows @ x_plane with x_plane = (I kron A) x_image + b: the same rows times I kron A (the
+        # constant is no part of a constraint, which keeps its initial value)
+        rows = np.asarray(part.rows, dtype=float)
+        if rows.shape[1] != 2 * count:
             raise ValueError(
-                "scene_constraint: a rail along a plane axis that the camera sees at an angle to the image "
-                "axes; only rails along an image axis are expressible (cldyn.FixedCoordinate)"
+                f"scene_constraint: a linear constraint on {rows.shape[1] // 2} keypoints; the frames have "
+                f"{count}"
             )
-        return cldyn.FixedCoordinate(part.keypoint, axis=int(seen[0]))
+        mapped = rows @ np.kron(np.eye(count), linear)
+        mapped = np.where(np.abs(mapped) < 1e-12 * np.abs(mapped).max(axis=1, keepdims=True), 0.0, mapped)
+        return cldyn.LinearConstraint(mapped)
     raise ValueError(
         f"scene_constraint: the scene has a constraint of kind {type(part).__name__} (a slide on a "
-        "moving body, or keypoints tied to a body's frame); only pivots, rods and rails along an axis "
-        "(cldyn.Anchor, cldyn.Distance, cldyn.FixedCoordinate) are carried to the image"
+        "turning body, or a hinge whose anchor is no keypoint); only pivots, rods, rails and linear ties "
+        "(cldyn.Anchor, cldyn.Distance, cldyn.FixedCoordinate, cldyn.LinearConstraint) are carried to the "
+        "image"
     )
 
 
 def _keypoints_of(part) -> tuple[int, ...]:
     if isinstance(part, cldyn.Distance):
         return (part.first, part.second)
+    if isinstance(part, cldyn.LinearConstraint):
+        return tuple(int(i) // 2 for i in np.flatnonzero(np.any(np.asarray(part.rows) != 0, axis=0)))
     return (part.keypoint,)
 
 

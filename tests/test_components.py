@@ -90,8 +90,11 @@ def test_constant_mass_parameterisation_round_trips():
         cldyn.FixedCoordinate(0, axis=1),
         cldyn.Stack([cldyn.Anchor(0), cldyn.Distance(0, 1), cldyn.FixedCoordinate(1, 0)]),
         cldyn.FromFunction(lambda x: jnp.stack([x[0] * x[3] - x[1] ** 2, jnp.sin(x[2])]), num_constraints=2),
+        cldyn.Stack(
+            [cldyn.LinearConstraint([[0.6, -0.8, 0.0, 0.0], [1.0, 0.0, -1.0, 0.0]]), cldyn.Distance(0, 1)]
+        ),
     ],
-    ids=["distance", "anchor", "fixed", "stack", "function"],
+    ids=["distance", "anchor", "fixed", "stack", "function", "linear"],
 )
 def test_jacobian_and_curvature_match_autodiff_of_phi(constraint):
     rng = np.random.default_rng(3)
@@ -141,6 +144,14 @@ def test_constraint_arguments_are_checked():
         cldyn.FixedCoordinate(0, axis=2)
     with pytest.raises(ValueError, match=r"Anchor point must have shape \(2,\)"):
         cldyn.Anchor(0, jnp.zeros(3))
+    with pytest.raises(ValueError, match=r"rows must have shape \(n, k\)"):
+        cldyn.LinearConstraint([1.0, 0.0])
+    with pytest.raises(ValueError, match="not all zero"):
+        cldyn.LinearConstraint([[1.0, 0.0], [0.0, 0.0]])
+    with pytest.raises(ValueError, match="finite"):
+        cldyn.LinearConstraint([[np.nan, 1.0]])
+    with pytest.raises(ValueError, match="rows are for 2 coordinates, x has 4"):
+        cldyn.LinearConstraint([[1.0, 0.0]])(jnp.zeros(4))
     bad = cldyn.FromFunction(lambda x: x[:3], num_constraints=2)
     with pytest.raises(ValueError, match=r"returned shape \(3,\), but num_constraints=2"):
         bad(jnp.zeros(4))

@@ -3,6 +3,7 @@
 import dataclasses
 import os
 
+import jax
 import numpy as np
 import pytest
 
@@ -68,6 +69,56 @@ def test_scene_constraint_refuses_a_camera_that_sees_the_plane_in_perspective(ma
     # the oblique camera's map is projective: a rod's length in the plane is no length in the image
     with pytest.raises(ValueError, match="perspective"):
         keyvision.scene_constraint(marker_frames)
+
+
+# A cart on a rail inclined along (0.8, 0, 0.6), a pole hinged on it; the camera looks straight at the
+# plane from 4 m (MuJoCo's fovy of 45 degrees)
+INCLINED_SCENE = """
+<mujoco model="inclined">
+  <option timestep="0.01" integrator="RK4"><flag contact="disable"/></option>
+  <worldbody>
+    <light pos="0 -1 4" dir="0 0 -1"/>
+    <camera name="fixed" pos="0 -4 1" zaxis="0 -1 0"/>
+    <body name="cart" pos="0 0 1">
+      <joint name="rail" type="slide" axis="0.8 0 0.6"/>
+      <geom type="box" size="0.1 0.05 0.05" mass="1" rgba="1 0 0 1"/>
+      <body name="pole">
+        <joint name="hinge" type="hinge" axis="0 1 0"/>
+        <geom type="capsule" fromto="0 0 0 0 0 0.6" size="0.03" mass="0.3" rgba="0 1 0 1"/>
+      </body>
+    </body>
+  </worldbody>
+  <actuator><motor joint="rail"/></actuator>
+</mujoco>
+"""
+
+
+def test_scene_constraint_carries_a_rail_at_an_angle_to_the_image(tmp_path):
+    from cldyn._keycld import constraint_entries
+
+    protocol = keyvision.RenderProtocol(runs=3, frames=6, validation_runs=1, image_size=16, slide_limit=0.3)
+    frames = keyvision.render(INCLINED_SCENE, protocol=protocol, cache=False, workers=1)
+    constraint = keyvision.scene_constraint(frames)
+    rod, rail = constraint.constraints
+    assert rod == cldyn.Distance(0, 1) and isinstance(rail, cldyn.LinearConstraint)
+    # one row on the cart's keypoint: the rail's normal (-0.6, 0.8), in image units (metres per unit
+    # 4 tan(22.5 degrees) for a camera 4 m from the plane)
+    metres_per_unit = 4 * np.tan(np.radians(22.5))
+    np.testing.assert_allclose(rail.rows, [[-0.6 * metres_per_unit, 0.8 * metres_per_unit, 0, 0]], rtol=1e-6)
+    # the true keypoints seen in the image keep it along every run
+    seen = frames.camera.to_image(frames.extras["keypoints"].reshape(-1, 2, 2)).reshape(3, 6, 4)
+    values = np.asarray(seen @ np.asarray(rail.rows)[0])
+    np.testing.assert_allclose(values, values[:, :1].repeat(6, axis=1), atol=1e-6)
+    # a model's spec records it (what keyvision train writes); saved and loaded, the model has it
+    dynamics = {"kind": "keycld", "size": 4, "num_inputs": 1, "width": 4, "depth": 1}
+    dynamics["constraint"] = constraint_entries(constraint)
+    assert dynamics["constraint"][1]["linear"] == [[float(v) for v in np.asarray(rail.rows)[0]]]
+    spec = {"keypoints": 2, "image_size": 16, "width": 4, "dynamics": dynamics}
+    keyvision.save_model(tmp_path, keyvision.model_from_spec(spec, key=jax.random.key(0)), spec)
+    loaded, _ = keyvision.load_model(tmp_path)
+    rod_loaded, rail_loaded = loaded.dynamics.constraint.constraints  # in the model's float32
+    assert rod_loaded == rod and isinstance(rail_loaded, cldyn.LinearConstraint)
+    np.testing.assert_allclose(rail_loaded.rows, rail.rows, rtol=1e-7)
 
 
 def test_keypoints_follow_the_joints_in_closed_form(marker_frames):

@@ -133,6 +133,28 @@ def _rod_forces(masses, x, xdd):
     return forces.reshape(-1), jnp.stack(tensions), jnp.stack(shear)
 
 
+@pytest.mark.parametrize("angle", [0.3, -1.1])
+def test_a_body_on_an_inclined_rail_slides_at_g_sin_theta(angle):
+    # two point masses tied rigidly (two linear rows: a body that does not turn), the first on a rail
+    # at `angle` (one row, the rail's normal): frictionless, the body accelerates along the rail at
+    # g sin(angle) downhill and the rail pushes along its normal with the weight's normal part
+    masses = jnp.array([1.0, 0.4])
+    along, normal = np.array([np.cos(angle), np.sin(angle)]), np.array([-np.sin(angle), np.cos(angle)])
+    rows = [[*normal, 0.0, 0.0], [1.0, 0.0, -1.0, 0.0], [0.0, 1.0, 0.0, -1.0]]
+    system = cldyn.ConstrainedLagrangian(
+        mass=cldyn.PointMasses(masses),
+        potential=cldyn.Gravity.from_masses(masses, g=GRAVITY),
+        constraint=cldyn.LinearConstraint(rows),
+    )
+    x = jnp.array([0.3, 0.3 * np.tan(angle), 0.5, -0.2])
+    xd = jnp.asarray(np.tile(1.7 * along, 2))
+    expected = np.tile(-GRAVITY * np.sin(angle) * along, 2)
+    np.testing.assert_allclose(system.acceleration(x, xd), expected, rtol=EXACT_RTOL, atol=EXACT_ATOL)
+    force = np.asarray(system.constraint_force(x, xd)).reshape(2, 2).sum(axis=0)  # on the body
+    weight = float(masses.sum()) * GRAVITY
+    np.testing.assert_allclose(force, weight * np.cos(angle) * normal, rtol=EXACT_RTOL, atol=EXACT_ATOL)
+
+
 @pytest.mark.parametrize("name", sorted(POINT_CHAINS))
 def test_constraint_forces_are_the_rod_forces_of_newton_euler(name):
     masses, lengths = POINT_CHAINS[name]

@@ -20,7 +20,7 @@ import jax.numpy as jnp
 import mujoco
 import numpy as np
 
-from .._constraint import AbstractConstraint, Anchor, Distance, FixedCoordinate, Stack
+from .._constraint import AbstractConstraint, Anchor, Distance, FixedCoordinate, LinearConstraint, Stack
 from .._coordinates import AbstractCoordinate, HingeAngle, JointMap, SliderPosition
 from .._dissipation import JointDamping
 from .._input import JointInput
@@ -35,7 +35,6 @@ from ._frames import (
     FrameAngle,
     FrameSlide,
     InverseKinematics,
-    LinearConstraint,
     NormConstraint,
     cmat,
 )

@@ -13,7 +13,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float
 
-from .._constraint import AbstractConstraint, _AbstractAutodiffConstraint
+from .._constraint import _AbstractAutodiffConstraint
 from .._coordinates import AbstractCoordinate, wrap_angle
 from .._custom_types import Scalar, Vector
 
@@ -90,25 +90,6 @@ class FrameSlide(AbstractCoordinate):
 
     def __call__(self, x: Vector) -> Scalar:
         return jnp.dot(self.displacement(x), self.axis(x)) - self.offset.astype(x.dtype)
-
-
-class LinearConstraint(AbstractConstraint):
-    """Linear constraints `rows @ x = const`: points attached to a frame, slides on a fixed line."""
-
-    rows: Float[Array, "n k"]
-
-    @property
-    def num_constraints(self) -> int:
-        return self.rows.shape[0]
-
-    def __call__(self, x: Vector) -> Float[Array, " n"]:
-        return self.rows.astype(x.dtype) @ x
-
-    def jacobian(self, x: Vector) -> Float[Array, "n k"]:
-        return self.rows.astype(x.dtype)
-
-    def curvature(self, x: Vector, xd: Vector) -> Float[Array, " n"]:
-        return jnp.zeros(self.rows.shape[0], dtype=x.dtype)
 
 
 class NormConstraint(_AbstractAutodiffConstraint):
