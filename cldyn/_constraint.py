@@ -296,6 +296,44 @@ class LinearConstraint(AbstractConstraint):
         return jnp.zeros(self.rows.shape[0], dtype=x.dtype)
 
 
+class AffineMap(eqx.Module):
+    """`y(x) = matrix @ x + const`: a planar point or direction affine in the keypoints."""
+
+    matrix: Float[Array, "2 k"]
+    const: Float[Array, " 2"]
+
+    def __call__(self, x: Vector) -> Float[Array, " 2"]:
+        return self.matrix.astype(x.dtype) @ x + self.const.astype(x.dtype)
+
+
+class NormConstraint(_AbstractAutodiffConstraint):
+    """`|d(x)| = const` for an affine `d`: a keypoint at a fixed distance from a hinge anchor that is no
+    keypoint itself."""
+
+    difference: AffineMap
+
+    @property
+    def num_constraints(self) -> int:
+        return 1
+
+    def __call__(self, x: Vector) -> Float[Array, " 1"]:
+        return jnp.sqrt(jnp.sum(self.difference(x) ** 2))[None]
+
+
+class BilinearConstraint(_AbstractAutodiffConstraint):
+    """`d(x) . n(x) = const`: a keypoint slides along a line fixed in a rotating parent."""
+
+    displacement: AffineMap
+    normal: AffineMap
+
+    @property
+    def num_constraints(self) -> int:
+        return 1
+
+    def __call__(self, x: Vector) -> Float[Array, " 1"]:
+        return jnp.dot(self.displacement(x), self.normal(x))[None]
+
+
 class _Segments:
     """The `Distance` and `Anchor` rows of a `Stack`, evaluated together in one vectorised pass.
 

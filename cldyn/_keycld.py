@@ -8,7 +8,17 @@ import jax.numpy as jnp
 from jaxtyping import PRNGKeyArray
 
 from ._baselines import SecondOrderNeuralODE
-from ._constraint import AbstractConstraint, Anchor, Distance, FixedCoordinate, LinearConstraint, Stack
+from ._constraint import (
+    AbstractConstraint,
+    AffineMap,
+    Anchor,
+    BilinearConstraint,
+    Distance,
+    FixedCoordinate,
+    LinearConstraint,
+    NormConstraint,
+    Stack,
+)
 from ._coordinates import AbstractCoordinate, HingeAngle, SliderPosition
 from ._custom_types import ArrayInput
 from ._input import JointInput, MLPInput
@@ -184,8 +194,9 @@ def keycld_constraint(system: str) -> AbstractConstraint:
 
 
 def constraint_entries(constraint: AbstractConstraint) -> list[dict]:
-    """A planar constraint of pivots, rods, rails and linear ties as JSON entries (`model_from_spec`'s
-    list form)."""
+    """A planar constraint of pivots, rods, rails, linear ties and the affine forms that `from_mjcf`
+    reads (a slide on a turning body, a hinge whose anchor is no keypoint) as JSON entries
+    (`model_from_spec`'s list form)."""
     parts = constraint.constraints if isinstance(constraint, Stack) else (constraint,)
     entries = []
     for part in parts:
@@ -199,17 +210,47 @@ def constraint_entries(constraint: AbstractConstraint) -> list[dict]:
             entries.append({"fixed": part.keypoint, "axis": part.axis})
         elif isinstance(part, LinearConstraint):
             entries.append({"linear": [[float(v) for v in row] for row in part.rows]})
+        elif isinstance(part, BilinearConstraint):
+            entries.append(
+                {
+                    "bilinear": {
+                        "displacement": _map_entry(part.displacement),
+                        "normal": _map_entry(part.normal),
+                    }
+                }
+            )
+        elif isinstance(part, NormConstraint):
+            entries.append({"norm": _map_entry(part.difference)})
         else:
             raise ValueError(f"no JSON entry for a {type(part).__name__} constraint")
     return entries
 
 
+def _map_entry(affine: AffineMap) -> dict:
+    return {
+        "matrix": [[float(v) for v in row] for row in affine.matrix],
+        "const": [float(v) for v in affine.const],
+    }
+
+
+def _map_from(entry: dict) -> AffineMap:
+    matrix, const = jnp.asarray(entry["matrix"], dtype=float), jnp.asarray(entry["const"], dtype=float)
+    if matrix.ndim != 2 or matrix.shape[0] != 2 or const.shape != (2,):
+        raise ValueError(
+            f"an affine map is a (2, k) matrix and a (2,) const; got {matrix.shape}, {const.shape}"
+        )
+    return AffineMap(matrix, const)
+
+
+_ENTRY_KINDS = ("anchor", "distance", "fixed", "linear", "bilinear", "norm")
+
+
 def _from_entries(entries: list) -> AbstractConstraint:
     parts: list[AbstractConstraint] = []
     for entry in entries:
-        if not isinstance(entry, dict) or len(set(entry) & {"anchor", "distance", "fixed", "linear"}) != 1:
+        if not isinstance(entry, dict) or len(set(entry) & set(_ENTRY_KINDS)) != 1:
             raise ValueError(
-                f"model spec: a constraint entry is one of anchor, distance, fixed, linear; got {entry!r}"
+                f"model spec: a constraint entry is one of {', '.join(_ENTRY_KINDS)}; got {entry!r}"
             )
         try:
             if "anchor" in entry:
@@ -219,6 +260,11 @@ def _from_entries(entries: list) -> AbstractConstraint:
                 parts.append(Distance(int(first), int(second)))
             elif "linear" in entry:
                 parts.append(LinearConstraint(entry["linear"]))
+            elif "bilinear" in entry:
+                forms = entry["bilinear"]
+                parts.append(BilinearConstraint(_map_from(forms["displacement"]), _map_from(forms["normal"])))
+            elif "norm" in entry:
+                parts.append(NormConstraint(_map_from(entry["norm"])))
             else:
                 parts.append(FixedCoordinate(int(entry["fixed"]), axis=int(entry["axis"])))
         except (KeyError, TypeError, ValueError) as error:
@@ -289,9 +335,12 @@ def model_from_spec(spec: dict, *, key: PRNGKeyArray):
       kinds `constraint`, a scene of `cldyn.KEYCLD_SCENES`, or (but for `"keycld-structured"`,
       whose joints are the scene's) a list of JSON entries, one per constraint:
       `{"anchor": i, "point": [x, y]}` (`Anchor`), `{"distance": [i, j]}` (`Distance`) and
-      `{"fixed": i, "axis": a}` (`FixedCoordinate`) and `{"linear": [[...], ...]}` (`LinearConstraint`,
-      its rows), as `keyvision train` writes for a scene that is not one of KeyCLD's
-      (`keyvision.scene_constraint`).
+      `{"fixed": i, "axis": a}` (`FixedCoordinate`), `{"linear": [[...], ...]}` (`LinearConstraint`,
+      its rows), and the forms of affine maps `d(x) = matrix @ x + const` that `cldyn.mujoco.from_mjcf`
+      reads, `{"bilinear": {"displacement": d, "normal": n}}` (`d(x) . n(x)`: a slide on a turning
+      body) and `{"norm": d}` (`|d(x)|`: a hinge whose anchor is no keypoint), each map
+      `{"matrix": [[...], [...]], "const": [c0, c1]}`; as `keyvision train` writes for a scene
+      that is not one of KeyCLD's (`keyvision.scene_constraint`).
     - `key`: a `jax.random` key for the initial parameters.
 
     **Returns:** the model. A spec that lacks an entry or names an unknown kind or scene raises a

@@ -2,9 +2,11 @@
 dynamics need to learn a mechanism that is not one of the paper's three scenes."""
 
 import jax
+import jax.numpy as jnp
 import numpy as np
 
 import cldyn
+from cldyn._constraint import AffineMap, BilinearConstraint, NormConstraint
 from cldyn._misc import optional_import
 
 from ._data import Frames
@@ -20,9 +22,10 @@ def scene_constraint(frames: Frames) -> cldyn.AbstractConstraint:
     in the plane of motion, in metres; the camera's map (`frames.camera`) carries them to the image
     frame, in which keyvision's keypoints live. A pivot becomes the image point it is seen at
     (`cldyn.Anchor(i, point)`), a rod stays a rod (`cldyn.Distance`), a rail along a plane axis
-    becomes a rail along the image axis it is seen along (`cldyn.FixedCoordinate`), and a rail at an
+    becomes a rail along the image axis it is seen along (`cldyn.FixedCoordinate`), a rail at an
     angle or keypoints tied to a body that does not turn (`cldyn.LinearConstraint`, `rows @ x`) keep
-    their rows, carried through the camera's map. For KeyCLD's scenes this is
+    their rows, and a slide on a turning body (`d(x) . n(x)`) or a hinge whose anchor is no keypoint
+    (`|d(x)|`) their affine maps `d`, `n`, carried through the camera's map. For KeyCLD's scenes this is
     `cldyn.keycld_constraint` (the paper's figure 7); for any other planar chain of hinges and slides
     it is the same structure, read from the scene, so `keyvision train` can learn its dynamics from
     the frames without naming a constraint.
@@ -36,10 +39,8 @@ def scene_constraint(frames: Frames) -> cldyn.AbstractConstraint:
     - `frames`: rendered frames (`keyvision.render`), with their MJCF, camera and true keypoints.
 
     **Returns:** a `cldyn.AbstractConstraint` on the `2K` image-frame coordinates of the `K`
-    keypoints (one constraint alone, or a `cldyn.Stack`). A scene whose constraints are of another
-    kind (a slide on a turning body, a hinge whose anchor is no keypoint), whose keypoints the
-    constraints do not hold on, or a camera map that is not a similarity raises a `ValueError` that
-    says which.
+    keypoints (one constraint alone, or a `cldyn.Stack`). A scene whose keypoints the constraints do
+    not hold on, or a camera map that is not a similarity raises a `ValueError` that says which.
 
     !!! example
 
@@ -58,23 +59,45 @@ def scene_constraint(frames: Frames) -> cldyn.AbstractConstraint:
             "scene_constraint: the frames carry no MJCF (frames.info['mjcf_xml']); render them again"
         )
     mujoco = optional_import("cldyn.mujoco", purpose="keyvision.scene_constraint")
-    plane = mujoco.from_mjcf(xml).system.constraint
-    names = list(frames.info.get("keypoint_names", []))
+    linear, offset = _affine(frames.camera)
+    names = [str(name) for name in frames.info.get("keypoint_names", [])]
+    # keypoints rendered at named sites (`keyvision.render(keypoints=)`) are the same sites for from_mjcf
+    at_sites = bool(names) and set(names) <= set(_site_names(xml))
+    try:
+        bridge = mujoco.from_mjcf(xml, keypoints=names if at_sites else None)
+    except ValueError as error:
+        raise ValueError(f"scene_constraint: the scene on the frames' keypoints: {error}") from None
+    if names and len(bridge.keypoint_names) != len(names):  # the same points are checked below
+        chosen = ", ".join(bridge.keypoint_names)
+        raise ValueError(
+            f"scene_constraint: the scene's constraints are on the keypoints {chosen} (cldyn.mujoco."
+            f"from_mjcf's choice: a turning body needs a keypoint of its own); the frames have "
+            f"{', '.join(names)}. Render them at sites placed there (keyvision.render(keypoints=))"
+        )
+    plane = bridge.system.constraint
     if plane is None:
         raise ValueError("scene_constraint: the scene has no constraints on its keypoints")
     parts = plane.constraints if isinstance(plane, cldyn.Stack) else (plane,)
-    linear = _affine(frames.camera)
     keypoints = frames.extras.get("keypoints")
     if keypoints is None:
         raise ValueError("scene_constraint: the frames carry no true keypoints (extras['keypoints'])")
     count = np.shape(keypoints)[-1] // 2
-    mapped = [_to_image(part, linear, frames.camera, count) for part in parts]
+    mapped = [_to_image(part, linear, offset, frames.camera, count) for part in parts]
     _check_rigid(plane, parts, frames, names)
     return mapped[0] if len(mapped) == 1 else cldyn.Stack(mapped)
 
 
-def _affine(camera) -> np.ndarray:
-    """`A` of plane = A @ image + b, checked to be a similarity."""
+def _site_names(xml: str) -> list[str]:
+    import mujoco
+
+    from cldyn.mujoco._scenes import load_model
+
+    model = load_model(xml)[0]
+    return [mujoco.mj_id2name(model, mujoco.mjtObj.mjOBJ_SITE, i) or "" for i in range(model.nsite)]
+
+
+def _affine(camera) -> tuple[np.ndarray, np.ndarray]:
+    """`A` and `b` of plane = A @ image + b, checked to be a similarity."""
     h = np.asarray(camera.homography, dtype=float)
     if np.max(np.abs(h[2, :2])) > _AFFINE_TOL * abs(h[2, 2]):
         raise ValueError(
@@ -88,10 +111,10 @@ def _affine(camera) -> np.ndarray:
             "scene_constraint: the camera stretches the plane unevenly (its map is not a similarity); "
             "distances in the plane are not distances in the image"
         )
-    return linear
+    return linear, h[:2, 2] / h[2, 2]
 
 
-def _to_image(part, linear: np.ndarray, camera, count: int) -> cldyn.AbstractConstraint:
+def _to_image(part, linear: np.ndarray, offset: np.ndarray, camera, count: int) -> cldyn.AbstractConstraint:
     if isinstance(part, cldyn.Distance):
         return cldyn.Distance(part.first, part.second)
     if isinstance(part, cldyn.Anchor):
@@ -111,28 +134,51 @@ def _to_image(part, linear: np.ndarray, camera, count: int) -> cldyn.AbstractCon
     if isinstance(part, cldyn.LinearConstraint):
         # rows @ x_plane with x_plane = (I kron A) x_image + b: the same rows times I kron A (the
         # constant is no part of a constraint, which keeps its initial value)
-        rows = np.asarray(part.rows, dtype=float)
-        if rows.shape[1] != 2 * count:
-            raise ValueError(
-                f"scene_constraint: a linear constraint on {rows.shape[1] // 2} keypoints; the frames have "
-                f"{count}"
+        return cldyn.LinearConstraint(_clean(_on(part.rows, count) @ np.kron(np.eye(count), linear)))
+    if isinstance(part, BilinearConstraint | NormConstraint):
+        # d(x_plane) = M x_plane + c = (M (I kron A)) x_image + (M (1 kron b) + c): still affine
+        def through(form):
+            matrix, const = _on(form.matrix, count), np.asarray(form.const, dtype=float)
+            return AffineMap(
+                jnp.asarray(_clean(matrix @ np.kron(np.eye(count), linear))),
+                jnp.asarray(matrix @ np.tile(offset, count) + const),
             )
-        mapped = rows @ np.kron(np.eye(count), linear)
-        mapped = np.where(np.abs(mapped) < 1e-12 * np.abs(mapped).max(axis=1, keepdims=True), 0.0, mapped)
-        return cldyn.LinearConstraint(mapped)
+
+        if isinstance(part, NormConstraint):
+            return NormConstraint(through(part.difference))
+        return BilinearConstraint(through(part.displacement), through(part.normal))
     raise ValueError(
-        f"scene_constraint: the scene has a constraint of kind {type(part).__name__} (a slide on a "
-        "turning body, or a hinge whose anchor is no keypoint); only pivots, rods, rails and linear ties "
-        "(cldyn.Anchor, cldyn.Distance, cldyn.FixedCoordinate, cldyn.LinearConstraint) are carried to the "
-        "image"
+        f"scene_constraint: the scene has a constraint of kind {type(part).__name__}, which "
+        "keyvision cannot carry to the image"
     )
+
+
+def _on(matrix, count: int) -> np.ndarray:
+    """A constraint's coefficients on the keypoints, checked to be on the frames' `count`."""
+    matrix = np.asarray(matrix, dtype=float)
+    if matrix.shape[1] != 2 * count:
+        raise ValueError(
+            f"scene_constraint: a constraint on {matrix.shape[1] // 2} keypoints; the frames have {count}"
+        )
+    return matrix
+
+
+def _clean(matrix: np.ndarray) -> np.ndarray:
+    """Entries below 1e-12 of their row's largest set to zero: what a map's rounding leaves in place of 0."""
+    return np.where(np.abs(matrix) < 1e-12 * np.abs(matrix).max(axis=1, keepdims=True), 0.0, matrix)
+
+
+def _forms(part) -> tuple:
+    return (part.difference,) if isinstance(part, NormConstraint) else (part.displacement, part.normal)
 
 
 def _keypoints_of(part) -> tuple[int, ...]:
     if isinstance(part, cldyn.Distance):
         return (part.first, part.second)
-    if isinstance(part, cldyn.LinearConstraint):
-        return tuple(int(i) // 2 for i in np.flatnonzero(np.any(np.asarray(part.rows) != 0, axis=0)))
+    if isinstance(part, cldyn.LinearConstraint | BilinearConstraint | NormConstraint):
+        forms = [part.rows] if isinstance(part, cldyn.LinearConstraint) else [f.matrix for f in _forms(part)]
+        used = np.any(np.concatenate([np.asarray(f) for f in forms]) != 0, axis=0)
+        return tuple(sorted({int(i) // 2 for i in np.flatnonzero(used)}))
     return (part.keypoint,)
 
 

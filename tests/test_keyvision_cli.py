@@ -360,6 +360,18 @@ CHAIN_SCENE = f"""
 
 
 @pytest.mark.mujoco
+def test_render_takes_the_keypoints_at_named_sites(tmp_path, capsys):
+    # --keypoints reaches keyvision.render: a site the scene lacks is refused by name, before rendering
+    pytest.importorskip("mujoco")
+    xml = tmp_path / "chain.xml"
+    xml.write_text(CHAIN_SCENE)
+    render = ["render", "--scene", xml, "--out", tmp_path / "data", "--keypoints", "nose", "--no-cache"]
+    status, _, err = _run(capsys, render)
+    line = _error_line(err, "render")
+    assert status == 2 and "no site 'nose'" in line and not (tmp_path / "data" / "frames.npz").exists()
+
+
+@pytest.mark.mujoco
 def test_train_reads_the_constraints_of_a_scene_that_is_not_keyclds(tmp_path, capsys):
     # the chain's pivot, seen off the image centre, and its two rods: read from the MJCF through the
     # camera, checked against the scene's geometry in closed form

@@ -121,6 +121,70 @@ def test_scene_constraint_carries_a_rail_at_an_angle_to_the_image(tmp_path):
     np.testing.assert_allclose(rail_loaded.rows, rail.rows, rtol=1e-7)
 
 
+# A bead that slides along a swinging arm (a slide on a turning body), the arm hinged at (0, 1)
+BEAD_SCENE = """
+<mujoco model="bead">
+  <option timestep="0.01" integrator="RK4"><flag contact="disable"/></option>
+  <worldbody>
+    <light pos="0 -1 4" dir="0 0 -1"/>
+    <camera name="fixed" pos="0.2 -4 0.8" zaxis="0 -1 0"/>
+    <body name="arm" pos="0 0 1">
+      <joint name="hinge" type="hinge" axis="0 1 0"/>
+      <geom type="capsule" fromto="0 0 0 0 0 -0.8" size="0.02" mass="0.5" rgba="0 1 0 1"/>
+      <site name="tip" pos="0 0 -0.8"/>
+      <body name="bead" pos="0 0 -0.4">
+        <joint name="slide" type="slide" axis="0 0 1"/>
+        <geom type="sphere" size="0.06" mass="0.3" rgba="1 0 0 1"/>
+        <site name="bead"/>
+      </body>
+    </body>
+  </worldbody>
+  <actuator><motor joint="hinge"/></actuator>
+</mujoco>
+"""
+
+
+def test_scene_constraint_carries_a_slide_on_a_turning_body_to_the_image(tmp_path):
+    from cldyn._keycld import constraint_entries
+
+    protocol = keyvision.RenderProtocol(runs=3, frames=6, validation_runs=1, image_size=16, slide_limit=0.2)
+    frames = keyvision.render(
+        BEAD_SCENE, protocol=protocol, keypoints=["bead", "tip"], cache=False, workers=1
+    )
+    pivot, slide = keyvision.scene_constraint(frames).constraints
+    # the arm's end pivots about the hinge as the image sees it (the camera centred on (0.2, 0.8))
+    metres_per_unit = 4 * np.tan(np.radians(22.5))
+    assert pivot.keypoint == 1
+    np.testing.assert_allclose(pivot.point, np.array([-0.2, 0.2]) / metres_per_unit, atol=1e-9)
+    # the bead stays on the line from the pivot through the arm's end: at any keypoints, the slide's
+    # constraint is a fixed multiple of the cross product of the two (the bead's offset across the arm)
+    x = np.random.default_rng(0).normal(size=(20, 4))
+    bead, arm = x[:, :2] - pivot.point, x[:, 2:] - pivot.point
+    cross = arm[:, 0] * bead[:, 1] - arm[:, 1] * bead[:, 0]
+    values = np.asarray(jax.vmap(slide)(jax.numpy.asarray(x)))[:, 0]
+    factor = values @ cross / (cross @ cross)
+    assert abs(factor) > 0.1
+    np.testing.assert_allclose(values, factor * cross, rtol=1e-9, atol=1e-12)
+    seen = frames.camera.to_image(frames.extras["keypoints"].reshape(-1, 2, 2)).reshape(-1, 4)
+    np.testing.assert_allclose(np.asarray(jax.vmap(slide)(jax.numpy.asarray(seen))), 0.0, atol=1e-9)
+    # recorded in a model's spec, saved and loaded
+    dynamics = {"kind": "keycld", "size": 4, "num_inputs": 1, "width": 4, "depth": 1}
+    dynamics["constraint"] = constraint_entries(keyvision.scene_constraint(frames))
+    spec = {"keypoints": 2, "image_size": 16, "width": 4, "dynamics": dynamics}
+    keyvision.save_model(tmp_path, keyvision.model_from_spec(spec, key=jax.random.key(0)), spec)
+    loaded, _ = keyvision.load_model(tmp_path)
+    loaded_values = jax.vmap(loaded.dynamics.constraint)(jax.numpy.asarray(x, dtype=jax.numpy.float32))
+    np.testing.assert_allclose(loaded_values[:, 1], values, rtol=1e-5, atol=1e-6)
+    # the bead alone (render's default keypoints here) cannot carry the arm's turn: refused, naming both
+    alone = dataclasses.replace(
+        frames,
+        info={**frames.info, "keypoint_names": ["slide"]},
+        extras={**frames.extras, "keypoints": frames.extras["keypoints"][..., :2]},
+    )
+    with pytest.raises(ValueError, match="on the keypoints slide, tip .* the frames have slide"):
+        keyvision.scene_constraint(alone)
+
+
 def test_keypoints_follow_the_joints_in_closed_form(marker_frames):
     """Rotation about +y by q carries (0, 0, L) to (L sin q, 0, L cos q); the plane is world (x, z)."""
     slide, angle = marker_frames.extras["qpos"][..., 0], marker_frames.extras["qpos"][..., 1]

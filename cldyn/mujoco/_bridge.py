@@ -20,7 +20,16 @@ import jax.numpy as jnp
 import mujoco
 import numpy as np
 
-from .._constraint import AbstractConstraint, Anchor, Distance, FixedCoordinate, LinearConstraint, Stack
+from .._constraint import (
+    AbstractConstraint,
+    Anchor,
+    BilinearConstraint,
+    Distance,
+    FixedCoordinate,
+    LinearConstraint,
+    NormConstraint,
+    Stack,
+)
 from .._coordinates import AbstractCoordinate, HingeAngle, JointMap, SliderPosition
 from .._dissipation import JointDamping
 from .._input import JointInput
@@ -30,12 +39,10 @@ from .._system import ConstrainedLagrangian
 from ._checks import actuator_name, check_include, check_supported
 from ._frames import (
     Affine,
-    BilinearConstraint,
     ForwardKinematics,
     FrameAngle,
     FrameSlide,
     InverseKinematics,
-    NormConstraint,
     cmat,
 )
 from ._scenes import load_model

@@ -13,7 +13,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float
 
-from .._constraint import _AbstractAutodiffConstraint
+from .._constraint import AffineMap
 from .._coordinates import AbstractCoordinate, wrap_angle
 from .._custom_types import Scalar, Vector
 
@@ -49,16 +49,6 @@ class Affine:
         return AffineMap(jnp.asarray(self.matrix, dtype=float), jnp.asarray(self.const, dtype=float))
 
 
-class AffineMap(eqx.Module):
-    """`y(x) = matrix @ x + const`: a planar point or direction affine in the keypoints."""
-
-    matrix: Float[Array, "2 k"]
-    const: Float[Array, " 2"]
-
-    def __call__(self, x: Vector) -> Float[Array, " 2"]:
-        return self.matrix.astype(x.dtype) @ x + self.const.astype(x.dtype)
-
-
 class FrameAngle(AbstractCoordinate):
     """A hinge angle read from two rigid groups' frames: `wrap(s * arg(z_child conj(z_parent)) - q0)`.
 
@@ -90,34 +80,6 @@ class FrameSlide(AbstractCoordinate):
 
     def __call__(self, x: Vector) -> Scalar:
         return jnp.dot(self.displacement(x), self.axis(x)) - self.offset.astype(x.dtype)
-
-
-class NormConstraint(_AbstractAutodiffConstraint):
-    """`|d(x)| = const` for an affine `d`: a keypoint at a fixed distance from a hinge anchor that is no
-    keypoint itself."""
-
-    difference: AffineMap
-
-    @property
-    def num_constraints(self) -> int:
-        return 1
-
-    def __call__(self, x: Vector) -> Float[Array, " 1"]:
-        return jnp.sqrt(jnp.sum(self.difference(x) ** 2))[None]
-
-
-class BilinearConstraint(_AbstractAutodiffConstraint):
-    """`d(x) . n(x) = const`: a keypoint slides along a line fixed in a rotating parent."""
-
-    displacement: AffineMap
-    normal: AffineMap
-
-    @property
-    def num_constraints(self) -> int:
-        return 1
-
-    def __call__(self, x: Vector) -> Float[Array, " 1"]:
-        return jnp.dot(self.displacement(x), self.normal(x))[None]
 
 
 def _rotation(angle: Array) -> Array:

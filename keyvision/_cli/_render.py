@@ -47,6 +47,14 @@ def register(subparsers) -> None:
     )
     parser.add_argument("--seed", type=seed, default=0, help="seed of the initial states and controls")
     parser.add_argument("--camera", default="fixed", help="name of a camera fixed in the world")
+    parser.add_argument(
+        "--keypoints",
+        nargs="+",
+        metavar="SITE",
+        default=None,
+        help="sites of the scene whose positions are the keypoints, in order (default: the moving joint "
+        "anchors and the far ends of the terminal bodies, KeyCLD's keypoints)",
+    )
     parser.add_argument("--workers", type=count, default=None, help="worker processes (default: CPUs)")
     parser.add_argument(
         "--cache",
@@ -84,6 +92,7 @@ def run(args: argparse.Namespace) -> int:
         args.scene,
         camera=args.camera,
         protocol=protocol,
+        keypoints=args.keypoints,
         seed=args.seed,
         cache=cache if args.use_cache else False,
         workers=args.workers,
