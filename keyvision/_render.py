@@ -26,7 +26,7 @@ import cldyn
 from cldyn._misc import check_fraction, check_positive, optional_import
 
 from ._data import SCHEMA, Frames, PlanarCamera, cache_directory, cache_key
-from ._scene import _HINGE, _JOINT_TYPES, _Camera, _mujoco, _name, _Scene, _scene
+from ._scene import _HINGE, _JOINT_TYPES, _Camera, _mujoco, _name, _Scene, _scene, default_keypoint_names
 
 
 @dataclasses.dataclass(frozen=True)
@@ -250,7 +250,8 @@ def render(
     - `protocol`: a `RenderProtocol`: runs, frames, image size and random distributions.
     - `seed`: seeds the initial states and the controls; the frames depend on nothing else.
     - `keypoints`: names of sites whose positions are the ground-truth keypoints; by default the
-      moving joint anchors and the far ends of the terminal bodies (KeyCLD's keypoints).
+      moving joint anchors and the far ends of the terminal bodies and of every turning body that
+      no other body is hinged to (KeyCLD's keypoints in KeyCLD's scenes).
     - `cache`: `True` for `keyvision.cache_directory()`, a directory, or `False` for none.
     - `workers`: the number of worker processes (the number of CPUs by default).
     - `progress_meter`: a `cldyn.AbstractProgressMeter`, e.g. `cldyn.TextProgressMeter()`.
@@ -288,7 +289,17 @@ def render(
         directory = cache_directory() if cache is True else pathlib.Path(cache)
         path = directory / f"{_slug(scene)}-{key[:16]}.npz"
         if path.exists():
-            return _load_cached(path, key)
+            frames = _load_cached(path, key)
+            if keypoints is None:  # the default keypoints gained the ends of turning bodies on 2026-12-03
+                default = default_keypoint_names(xml)
+                names = frames.info.get("keypoint_names")
+                if names is not None and list(names) != default:
+                    raise ValueError(
+                        f"{path}: the cached frames have the keypoints {frames.info.get('keypoint_names')}, "
+                        f"the scene's default keypoints are now {default}; delete the file to render again, "
+                        "or pass cache=False."
+                    )
+            return frames
     setup = {"xml": xml, "protocol": protocol, "camera": camera, "keypoints": keypoints, "gl": "egl"}
     start = time.perf_counter()
     frames = _render(setup, seed, workers, progress_meter)

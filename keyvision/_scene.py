@@ -89,9 +89,11 @@ def _local(data, body: int, point: np.ndarray) -> np.ndarray:
 
 def _default_keypoints(mujoco, model, data, basis) -> list[_Point]:
     """The anchors of the joints that move (a hinge on a moving body, every slide), then the far end
-    of every terminal moving body (its site or geom end farthest from its joint, in the plane);
-    points that coincide in the reference configuration are kept once. For KeyCLD's scenes these are
-    the paper's keypoints: the pendulum's tip; the cart and the pole's tip; the elbow and the tip."""
+    (its site or geom end farthest from its joint, in the plane) of every terminal moving body and of
+    every body that turns and carries no hinge of another body (an arm along which a bead slides: a
+    turning body needs a point of its own, as `cldyn.mujoco.from_mjcf` places one); points that
+    coincide in the reference configuration are kept once. For KeyCLD's scenes these are the
+    paper's keypoints: the pendulum's tip; the cart and the pole's tip; the elbow and the tip."""
     weld = np.array(model.body_weldid)
     moving = sorted({int(weld[model.jnt_bodyid[j]]) for j in range(model.njnt)})
     parent_group = {g: int(weld[model.body_parentid[g]]) for g in moving}
@@ -105,9 +107,11 @@ def _default_keypoints(mujoco, model, data, basis) -> list[_Point]:
             (_name(mujoco, model, mujoco.mjtObj.mjOBJ_JOINT, j, "joint"), body, data.xanchor[j])
         )
     has_moving_child = {parent_group[g] for g in moving}
+    hinged = [int(weld[model.jnt_bodyid[j]]) for j in range(model.njnt) if model.jnt_type[j] == _HINGE]
+    carries_a_hinge = {parent_group[g] for g in hinged}
     for g in moving:
-        if g in has_moving_child:
-            continue
+        if g in has_moving_child and (g not in hinged or g in carries_a_hinge):
+            continue  # its joints' anchors and its children's hinges place it
         anchor = data.xanchor[next(j for j in range(model.njnt) if weld[model.jnt_bodyid[j]] == g)]
         ends = []
         for s in range(model.nsite):
@@ -223,6 +227,16 @@ class _Camera:
 
     def close(self) -> None:
         self._renderer.close()
+
+
+def default_keypoint_names(xml: str) -> list[str]:
+    """The names of the scene's default keypoints (`_default_keypoints`), without a camera or a render."""
+    mujoco = _mujoco()
+    model = mujoco.MjModel.from_xml_string(xml)
+    data = mujoco.MjData(model)
+    mujoco.mj_forward(model, data)
+    basis, _ = _plane(model, data)
+    return [point.name for point in _default_keypoints(mujoco, model, data, basis)]
 
 
 def _scene(xml: str, protocol: "RenderProtocol", camera: str | int, keypoints) -> _Scene:

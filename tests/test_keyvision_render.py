@@ -175,7 +175,16 @@ def test_scene_constraint_carries_a_slide_on_a_turning_body_to_the_image(tmp_pat
     loaded, _ = keyvision.load_model(tmp_path)
     loaded_values = jax.vmap(loaded.dynamics.constraint)(jax.numpy.asarray(x, dtype=jax.numpy.float32))
     np.testing.assert_allclose(loaded_values[:, 1], values, rtol=1e-5, atol=1e-6)
-    # the bead alone (render's default keypoints here) cannot carry the arm's turn: refused, naming both
+    # by default the keypoints are the bead and the arm's end: the arm turns and carries no hinge, so
+    # it gets a point of its own, as from_mjcf gives it (rotation about +y by q carries (0, 0, c) to
+    # (c sin q, c cos q); the bead at c = s - 0.4 along the arm, its end at c = -0.8, the pivot at z 1)
+    q, s = 0.7, 0.15
+    default = keyvision.render_poses(
+        BEAD_SCENE.replace('<site name="tip" pos="0 0 -0.8"/>', ""), [[q, s]], image_size=16
+    )
+    expected = [(s - 0.4) * np.sin(q), 1 + (s - 0.4) * np.cos(q), -0.8 * np.sin(q), 1 - 0.8 * np.cos(q)]
+    np.testing.assert_allclose(default["keypoints"], [expected], atol=EXACT)
+    # the bead alone cannot carry the arm's turn: refused, naming from_mjcf's keypoints
     alone = dataclasses.replace(
         frames,
         info={**frames.info, "keypoint_names": ["slide"]},
@@ -221,8 +230,9 @@ def test_render_poses_draws_the_poses_with_their_potential_energy(marker_frames)
     """The frames and keypoints of `render` for the same joint positions, and MuJoCo's potential
     energy in closed form: V = g (m_c h + m_a (h + L cos q)), the carriage at the pivot's height."""
     qpos = marker_frames.extras["qpos"].reshape(-1, 2)
-    poses = keyvision.render_poses(MARKER_SCENE, qpos, camera="oblique", image_size=SMALL.image_size,
-                                   keypoints=["marker"])
+    poses = keyvision.render_poses(
+        MARKER_SCENE, qpos, camera="oblique", image_size=SMALL.image_size, keypoints=["marker"]
+    )
     np.testing.assert_array_equal(poses["frames"], marker_frames.frames.reshape(poses["frames"].shape))
     keypoints = marker_frames.extras["keypoints"].reshape(-1, 2)
     np.testing.assert_allclose(poses["keypoints"], keypoints, atol=EXACT)
@@ -357,6 +367,19 @@ def test_truncated_cache_is_refused_naming_the_file(tmp_path, monkeypatch):
     with pytest.raises(ValueError, match="delete the file") as error:
         keyvision.render(MARKER_SCENE, protocol=SMALL, seed=3, cache=tmp_path)
     assert str(path) in str(error.value)
+
+
+def test_cache_with_keypoints_other_than_the_scenes_defaults_is_refused(tmp_path, monkeypatch):
+    # frames cached before the default keypoints changed: refused naming both lists, not served stale
+    def stale(setup, seed, workers, progress_meter):
+        frames = _fake_frames(setup, seed, workers, progress_meter)
+        return dataclasses.replace(frames, info={**frames.info, "keypoint_names": ["slide"]})
+
+    monkeypatch.setattr(render_module, "_render", stale)
+    keyvision.render(MARKER_SCENE, protocol=SMALL, seed=3, cache=tmp_path)
+    monkeypatch.setattr(render_module, "_render", _refuse_to_render)
+    with pytest.raises(ValueError, match=r"keypoints \['slide'\].*now \['slide', 'marker'\]"):
+        keyvision.render(MARKER_SCENE, protocol=SMALL, seed=3, cache=tmp_path)
 
 
 def test_cache_directory_follows_the_environment(tmp_path, monkeypatch):
