@@ -3,9 +3,10 @@ the effects' values in MuJoCo's units.
 
 A KeyCLD model of a planar chain knows its joints only through its constraints: `Anchor(i)` hinges
 keypoint `i` about a fixed point, `Distance(i, j)` hinges `j` about `i`, `FixedCoordinate(i, axis=1)`
-slides `i` along a horizontal rail. `joint_structure` reads those into joint coordinates and the map from
-joints to keypoints, with the link lengths measured on the data (the constraints' values along the
-runs: only their Jacobians enter the dynamics, so a learnt model carries no lengths of its own).
+slides `i` along a horizontal rail (a one-row `LinearConstraint`, along a rail at an angle).
+`joint_structure` reads those into joint coordinates and the map from joints to keypoints, with the
+link lengths measured on the data (the constraints' values along the runs: only their Jacobians enter
+the dynamics, so a learnt model carries no lengths of its own).
 """
 
 import dataclasses
@@ -18,7 +19,7 @@ import numpy as np
 from jaxtyping import ArrayLike, Float
 
 import cldyn
-from cldyn._constraint import Anchor, Distance, FixedCoordinate, Stack
+from cldyn._constraint import Anchor, Distance, FixedCoordinate, LinearConstraint, Stack
 
 from ._balance import add_checked_balance, balance_entry
 from ._controls import _place_controls
@@ -34,9 +35,10 @@ class _Joint:
     keypoint: int  # the keypoint this joint places
     parent: int | None  # the keypoint it hangs from (None: a fixed point)
     relative: bool  # a hinge measured from its parent link's direction (else from straight down)
-    level: float  # link length (hinge) or the rail's height (slide)
+    level: float  # link length (hinge) or the rail's offset along its normal (slide)
     pivot: tuple[float, float] = (0.0, 0.0)
     axis: tuple[float, float] = (1.0, 0.0)
+    normal: tuple[float, float] = (0.0, 1.0)  # a slide's rail normal: x = q axis + level normal
     free: bool = False  # one of the two slides of an unconstrained keypoint
 
 
@@ -46,6 +48,19 @@ def _leaves(constraint) -> list:
     if isinstance(constraint, Stack):
         return [leaf for part in constraint.constraints for leaf in _leaves(part)]
     return [constraint]
+
+
+def _rail(leaf: LinearConstraint, count: int) -> tuple[int, tuple[float, float]] | None:
+    """`(keypoint, unit normal)` of a linear constraint that is one rail: one row on one keypoint."""
+    rows = np.asarray(leaf.rows, dtype=float)
+    if rows.shape != (1, 2 * count):
+        return None
+    used = np.flatnonzero(rows[0])
+    if len(used) == 0 or used[0] // 2 != used[-1] // 2:
+        return None
+    i = int(used[0] // 2)
+    normal = rows[0, 2 * i : 2 * i + 2] / np.linalg.norm(rows[0, 2 * i : 2 * i + 2])
+    return i, (float(normal[0]), float(normal[1]))
 
 
 def _chain(constraint, x: np.ndarray) -> list[_Joint]:
@@ -60,10 +75,12 @@ def _chain(constraint, x: np.ndarray) -> list[_Joint]:
             child = leaf.second
         elif isinstance(leaf, FixedCoordinate) and leaf.dim == 2:
             child = leaf.keypoint
+        elif isinstance(leaf, LinearConstraint) and _rail(leaf, count) is not None:
+            child = _rail(leaf, count)[0]
         else:
             raise ValueError(
                 f"joints from keypoints: constraint {type(leaf).__name__} is not one of a planar chain "
-                "(Anchor, Distance, FixedCoordinate)"
+                "(Anchor, Distance, FixedCoordinate, or a LinearConstraint of one row on one keypoint)"
             )
         if child in placed_by:
             raise ValueError(f"joints from keypoints: keypoint {child} is constrained twice (a closed loop)")
@@ -92,11 +109,18 @@ def _chain(constraint, x: np.ndarray) -> list[_Joint]:
             length = float(np.median(np.linalg.norm(points[:, i] - points[:, parent], axis=-1)))
             joints.append(_Joint("hinge", i, parent, parent in hinged, length))
             hinged.add(i)
-        else:  # FixedCoordinate: the other coordinate slides
-            slide = 1 - leaf.axis
-            axis = (1.0, 0.0) if slide == 0 else (0.0, 1.0)
+        elif isinstance(leaf, FixedCoordinate):  # the other coordinate slides
+            axis, normal = ((1.0, 0.0), (0.0, 1.0)) if leaf.axis == 1 else ((0.0, 1.0), (1.0, 0.0))
             level = float(np.median(points[:, i, leaf.axis]))
-            joints.append(_Joint("slide", i, None, False, level, axis=axis))
+            joints.append(_Joint("slide", i, None, False, level, axis=axis, normal=normal))
+        else:  # a rail at an angle: along it, positive to the right (or up, for a vertical rail)
+            _, normal = _rail(leaf, count)
+            along = np.array([normal[1], -normal[0]])
+            if along[0] < -1e-12 or (abs(along[0]) <= 1e-12 and along[1] < 0):
+                along = -along
+            axis = (float(along[0]), float(along[1]))
+            level = float(np.median(points[:, i] @ np.asarray(normal)))
+            joints.append(_Joint("slide", i, None, False, level, axis=axis, normal=normal))
 
     for i in range(count):
         place(i)
@@ -132,7 +156,7 @@ class _Forward(eqx.Module):
                         positions[joint.keypoint] = jnp.stack(free[joint.keypoint])
                     continue
                 along = q[index] * jnp.asarray(joint.axis, dtype=q.dtype)
-                across = joint.level * jnp.asarray(joint.axis[::-1], dtype=q.dtype)
+                across = joint.level * jnp.asarray(joint.normal, dtype=q.dtype)
                 positions[joint.keypoint] = along + across
                 continue
             angle = q[index] + (angles[joint.parent] if joint.relative else 0.0)
@@ -183,8 +207,9 @@ def joint_structure(
 
     `Anchor(i)` is a hinge about a fixed point, `Distance(i, j)` a hinge of `j` about `i` (measured
     from the direction of the link before it when `i` is itself hinged, as MuJoCo's hinges are), and
-    `FixedCoordinate(i, axis)` a slide along the other axis; a keypoint without a constraint is two
-    slides. Hinge angles are counter-clockwise from straight down (or from the parent link).
+    `FixedCoordinate(i, axis)` a slide along the other axis and a one-row `LinearConstraint` on one
+    keypoint a slide along its rail (rightwards, or upwards for a vertical rail); a keypoint without a
+    constraint is two slides. Hinge angles are counter-clockwise from straight down (or from the parent link).
 
     **Arguments:**
 

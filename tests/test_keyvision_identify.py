@@ -62,6 +62,30 @@ def test_cartpole_joints_are_a_slide_and_a_hinge_from_straight_down(angles):
     np.testing.assert_allclose(jax.vmap(structure.joint_map.forward)(jnp.asarray(q)), x, atol=1e-12)
 
 
+@pytest.mark.parametrize("incline", [0.4, -2.0])
+def test_a_cart_on_an_inclined_rail_slides_along_it(angles, incline):
+    # the cart at distance c along a rail through (0.3, RAIL) at `incline` (its normal the one row of a
+    # LinearConstraint, of any scale), the pole hinged on it from straight down
+    c, a = angles[0] / 3, angles[1]
+    along = np.array([np.cos(incline), np.sin(incline)])
+    sense = 1.0 if along[0] > 0 else -1.0  # joint_structure measures along the rail rightwards
+    cart = np.array([0.3, RAIL]) + (c * sense)[:, None] * along
+    x = np.concatenate([cart, cart + np.stack([L2 * np.sin(a), -L2 * np.cos(a)], -1)], -1)
+    normal = np.array([-along[1], along[0]])
+    rail = cldyn.LinearConstraint([[*(2.5 * normal), 0.0, 0.0]])
+    structure = keyvision.joint_structure(cldyn.Stack([rail, cldyn.Distance(0, 1)]), x, ["rail", "hinge"])
+    assert structure.kinds == ("slide", "hinge")
+    np.testing.assert_allclose(structure.levels, [normal @ [0.3, RAIL], L2], atol=EXACT)
+    q = np.asarray(jax.vmap(structure.joint_map.inverse)(jnp.asarray(x)))
+    offset = sense * along @ [0.3, RAIL]  # the slide's origin is the rail's foot from the image origin
+    np.testing.assert_allclose(q, np.stack([c + offset, _wrap(a)], -1), atol=1e-9)
+    np.testing.assert_allclose(jax.vmap(structure.joint_map.forward)(jnp.asarray(q)), x, atol=1e-12)
+    # two rows, or a row on two keypoints, are no rail
+    for rows in ([[*normal, 0.0, 0.0], [0.0, 0.0, 1.0, 0.0]], [[*normal, 1.0, 0.0]]):
+        with pytest.raises(ValueError, match="one row on one keypoint"):
+            keyvision.joint_structure(cldyn.Stack([cldyn.LinearConstraint(rows), cldyn.Distance(0, 1)]), x)
+
+
 def test_structures_that_are_not_a_planar_chain_are_refused(angles):
     x = _acrobot(*angles)
     twice = cldyn.Stack([cldyn.Anchor(0), cldyn.Distance(1, 0)])
