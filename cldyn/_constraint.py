@@ -253,7 +253,8 @@ class LinearConstraint(AbstractConstraint):
     **Arguments:**
 
     - `rows`: the constraints' coefficients, shape `(n, k)` for `k` keypoint coordinates; finite, no
-      row zero.
+      row zero. An array (scenes that differ only in numbers share one compiled program), but no
+      parameter: no gradient reaches it, so training a model leaves its constraints as they are.
 
     !!! example
 
@@ -284,7 +285,7 @@ class LinearConstraint(AbstractConstraint):
             raise ValueError(
                 f"LinearConstraint: rows are for {self.rows.shape[1]} coordinates, x has {x.shape[-1]}"
             )
-        return self.rows.astype(x.dtype)
+        return jax.lax.stop_gradient(self.rows.astype(x.dtype))  # geometry, not a parameter
 
     def __call__(self, x: Vector) -> Float[Array, " n"]:
         return self._rows(x) @ x
@@ -297,13 +298,15 @@ class LinearConstraint(AbstractConstraint):
 
 
 class AffineMap(eqx.Module):
-    """`y(x) = matrix @ x + const`: a planar point or direction affine in the keypoints."""
+    """`y(x) = matrix @ x + const`: a planar point or direction affine in the keypoints. Geometry read
+    from a scene, not a parameter: no gradient reaches `matrix` or `const`."""
 
     matrix: Float[Array, "2 k"]
     const: Float[Array, " 2"]
 
     def __call__(self, x: Vector) -> Float[Array, " 2"]:
-        return self.matrix.astype(x.dtype) @ x + self.const.astype(x.dtype)
+        matrix, const = jax.lax.stop_gradient((self.matrix.astype(x.dtype), self.const.astype(x.dtype)))
+        return matrix @ x + const
 
 
 class NormConstraint(_AbstractAutodiffConstraint):

@@ -3,6 +3,7 @@
 import dataclasses
 import os
 
+import equinox as eqx
 import jax
 import numpy as np
 import pytest
@@ -167,6 +168,9 @@ def test_scene_constraint_carries_a_slide_on_a_turning_body_to_the_image(tmp_pat
     np.testing.assert_allclose(values, factor * cross, rtol=1e-9, atol=1e-12)
     seen = frames.camera.to_image(frames.extras["keypoints"].reshape(-1, 2, 2)).reshape(-1, 4)
     np.testing.assert_allclose(np.asarray(jax.vmap(slide)(jax.numpy.asarray(seen))), 0.0, atol=1e-9)
+    # its affine maps are the scene's geometry: no gradient reaches them, so training leaves them be
+    grads = eqx.filter_grad(lambda c: jax.numpy.sum(jax.vmap(c)(jax.numpy.asarray(x)) ** 2))(slide)
+    assert all(np.all(np.asarray(g) == 0) for g in jax.tree.leaves(grads))
     # recorded in a model's spec, saved and loaded
     dynamics = {"kind": "keycld", "size": 4, "num_inputs": 1, "width": 4, "depth": 1}
     dynamics["constraint"] = constraint_entries(keyvision.scene_constraint(frames))
