@@ -68,15 +68,17 @@ def _chain(constraint, x: np.ndarray) -> list[_Joint]:
     count = x.shape[-1] // 2
     points = x.reshape(-1, count, 2)
     placed_by: dict[int, object] = {}
+    normals: dict[int, tuple[float, float]] = {}  # the rails' normals, by the keypoint on each
     for leaf in _leaves(constraint):
+        rail = _rail(leaf, count) if isinstance(leaf, LinearConstraint) else None
         if isinstance(leaf, Anchor):
             child = leaf.keypoint
         elif isinstance(leaf, Distance):
             child = leaf.second
         elif isinstance(leaf, FixedCoordinate) and leaf.dim == 2:
             child = leaf.keypoint
-        elif isinstance(leaf, LinearConstraint) and _rail(leaf, count) is not None:
-            child = _rail(leaf, count)[0]
+        elif rail is not None:
+            child, normals[rail[0]] = rail
         else:
             raise ValueError(
                 f"joints from keypoints: constraint {type(leaf).__name__} is not one of a planar chain "
@@ -114,7 +116,7 @@ def _chain(constraint, x: np.ndarray) -> list[_Joint]:
             level = float(np.median(points[:, i, leaf.axis]))
             joints.append(_Joint("slide", i, None, False, level, axis=axis, normal=normal))
         else:  # a rail at an angle: along it, positive to the right (or up, for a vertical rail)
-            _, normal = _rail(leaf, count)
+            normal = normals[i]
             along = np.array([normal[1], -normal[0]])
             if along[0] < -1e-12 or (abs(along[0]) <= 1e-12 and along[1] < 0):
                 along = -along
