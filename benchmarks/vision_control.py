@@ -104,7 +104,8 @@ def _si_factor(model, scene: str, poses: int = 200, seed: int = 0, supersample: 
 
     from keyvision import _control
     from keyvision._data import PlanarCamera
-    from keyvision._identify import actuator_gears, energy_scale, joint_structure, metres_per_unit
+    from keyvision._identify import actuator_gears, energy_scale, metres_per_unit
+    from keyvision._joints import joint_structure
     from keyvision._render import _scene_xml
     from keyvision._scene import _Camera
 

@@ -40,11 +40,11 @@ from ._files import (
     model_from_spec as model_from_spec,
     save_model as save_model,
 )
-from ._identify import (
-    ImageIdentification as ImageIdentification,
+from ._identify import ImageIdentification as ImageIdentification, identify as identify
+from ._joints import (
     JointStructure as JointStructure,
-    identify as identify,
     joint_structure as joint_structure,
+    scene_joints as scene_joints,
 )
 from ._keypoints import (
     frame_to_pixel as frame_to_pixel,

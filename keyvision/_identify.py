@@ -1,16 +1,8 @@
-"""Finding what a model learnt from images is missing: its keypoints as joints, `cldyn.identify`, and
-the effects' values in MuJoCo's units.
-
-A KeyCLD model of a planar chain knows its joints only through its constraints: `Anchor(i)` hinges
-keypoint `i` about a fixed point, `Distance(i, j)` hinges `j` about `i`, `FixedCoordinate(i, axis=1)`
-slides `i` along a horizontal rail (a one-row `LinearConstraint`, along a rail at an angle).
-`joint_structure` reads those into joint coordinates and the map from joints to keypoints, with the
-link lengths measured on the data (the constraints' values along the runs: only their Jacobians enter
-the dynamics, so a learnt model carries no lengths of its own).
-"""
+"""Finding what a model learnt from images is missing: its keypoints as joints (`_joints.py`),
+`cldyn.identify`, and the effects' values in MuJoCo's units."""
 
 import dataclasses
-from collections.abc import Mapping, Sequence
+from collections.abc import Mapping
 
 import equinox as eqx
 import jax
@@ -19,238 +11,14 @@ import numpy as np
 from jaxtyping import ArrayLike, Float
 
 import cldyn
-from cldyn._constraint import Anchor, Distance, FixedCoordinate, LinearConstraint, Stack
 
 from ._balance import add_checked_balance, balance_entry
 from ._controls import _place_controls
 from ._data import ImageSequences
 from ._evaluate import json_number, predict_runs, prediction_threshold, valid_prediction_time
+from ._joints import JointStructure, model_joints
 from ._model import KeyCLD
 from ._train import Schedule, encode_sequences, train
-
-
-@dataclasses.dataclass(frozen=True)
-class _Joint:
-    kind: str  # "hinge" or "slide"
-    keypoint: int  # the keypoint this joint places
-    parent: int | None  # the keypoint it hangs from (None: a fixed point)
-    relative: bool  # a hinge measured from its parent link's direction (else from straight down)
-    level: float  # link length (hinge) or the rail's offset along its normal (slide)
-    pivot: tuple[float, float] = (0.0, 0.0)
-    axis: tuple[float, float] = (1.0, 0.0)
-    normal: tuple[float, float] = (0.0, 1.0)  # a slide's rail normal: x = q axis + level normal
-    free: bool = False  # one of the two slides of an unconstrained keypoint
-
-
-def _leaves(constraint) -> list:
-    if constraint is None:
-        return []
-    if isinstance(constraint, Stack):
-        return [leaf for part in constraint.constraints for leaf in _leaves(part)]
-    return [constraint]
-
-
-def _rail(leaf: LinearConstraint, count: int) -> tuple[int, tuple[float, float]] | None:
-    """`(keypoint, unit normal)` of a linear constraint that is one rail: one row on one keypoint."""
-    rows = np.asarray(leaf.rows, dtype=float)
-    if rows.shape != (1, 2 * count):
-        return None
-    used = np.flatnonzero(rows[0])
-    if len(used) == 0 or used[0] // 2 != used[-1] // 2:
-        return None
-    i = int(used[0] // 2)
-    normal = rows[0, 2 * i : 2 * i + 2] / np.linalg.norm(rows[0, 2 * i : 2 * i + 2])
-    return i, (float(normal[0]), float(normal[1]))
-
-
-def _chain(constraint, x: np.ndarray) -> list[_Joint]:
-    """The joints of a planar chain of keypoints, in the order that places them, from its constraints."""
-    count = x.shape[-1] // 2
-    points = x.reshape(-1, count, 2)
-    placed_by: dict[int, object] = {}
-    normals: dict[int, tuple[float, float]] = {}  # the rails' normals, by the keypoint on each
-    for leaf in _leaves(constraint):
-        rail = _rail(leaf, count) if isinstance(leaf, LinearConstraint) else None
-        if isinstance(leaf, Anchor):
-            child = leaf.keypoint
-        elif isinstance(leaf, Distance):
-            child = leaf.second
-        elif isinstance(leaf, FixedCoordinate) and leaf.dim == 2:
-            child = leaf.keypoint
-        elif rail is not None:
-            child, normals[rail[0]] = rail
-        else:
-            raise ValueError(
-                f"joints from keypoints: constraint {type(leaf).__name__} is not one of a planar chain "
-                "(Anchor, Distance, FixedCoordinate, or a LinearConstraint of one row on one keypoint)"
-            )
-        if child in placed_by:
-            raise ValueError(f"joints from keypoints: keypoint {child} is constrained twice (a closed loop)")
-        placed_by[child] = leaf
-    joints: list[_Joint] = []
-    hinged: set[int] = set()  # keypoints placed by a hinge: a child's angle is measured from their link
-
-    def place(i: int, visiting: tuple[int, ...] = ()) -> None:
-        if any(j.keypoint == i for j in joints):
-            return
-        if i in visiting:
-            raise ValueError(f"joints from keypoints: the constraints form a loop through keypoint {i}")
-        leaf = placed_by.get(i)
-        if leaf is None:  # a free keypoint: two slides
-            for axis in ((1.0, 0.0), (0.0, 1.0)):
-                joints.append(_Joint("slide", i, None, False, 0.0, axis=axis, free=True))
-            return
-        if isinstance(leaf, Anchor):
-            pivot = tuple(float(v) for v in leaf.point)
-            length = float(np.median(np.linalg.norm(points[:, i] - np.asarray(pivot), axis=-1)))
-            joints.append(_Joint("hinge", i, None, False, length, pivot=pivot))
-            hinged.add(i)
-        elif isinstance(leaf, Distance):
-            parent = leaf.first
-            place(parent, (*visiting, i))
-            length = float(np.median(np.linalg.norm(points[:, i] - points[:, parent], axis=-1)))
-            joints.append(_Joint("hinge", i, parent, parent in hinged, length))
-            hinged.add(i)
-        elif isinstance(leaf, FixedCoordinate):  # the other coordinate slides
-            axis, normal = ((1.0, 0.0), (0.0, 1.0)) if leaf.axis == 1 else ((0.0, 1.0), (1.0, 0.0))
-            level = float(np.median(points[:, i, leaf.axis]))
-            joints.append(_Joint("slide", i, None, False, level, axis=axis, normal=normal))
-        else:  # a rail at an angle: along it, positive to the right (or up, for a vertical rail)
-            normal = normals[i]
-            along = np.array([normal[1], -normal[0]])
-            if along[0] < -1e-12 or (abs(along[0]) <= 1e-12 and along[1] < 0):
-                along = -along
-            axis = (float(along[0]), float(along[1]))
-            level = float(np.median(points[:, i] @ np.asarray(normal)))
-            joints.append(_Joint("slide", i, None, False, level, axis=axis, normal=normal))
-
-    for i in range(count):
-        place(i)
-    return joints
-
-
-def _coordinate(joint: _Joint, parents: dict[int, int | None]) -> cldyn.AbstractCoordinate:
-    if joint.kind == "slide":
-        return cldyn.SliderPosition(joint.keypoint, axis=joint.axis)
-    if joint.parent is None:
-        return cldyn.HingeAngle(child=(None, joint.keypoint), pivot=joint.pivot)
-    if joint.relative:  # from the direction of the parent's own link
-        grandparent = parents.get(joint.parent)
-        return cldyn.HingeAngle(child=(joint.parent, joint.keypoint), parent=(grandparent, joint.parent))
-    return cldyn.HingeAngle(child=(joint.parent, joint.keypoint))
-
-
-class _Forward(eqx.Module):
-    """`x = F(q)` of a planar chain: hinges measured from straight down or from their parent link."""
-
-    joints: tuple[_Joint, ...] = eqx.field(static=True)
-    count: int = eqx.field(static=True)
-
-    def __call__(self, q):
-        positions: dict[int, jax.Array] = {}
-        angles: dict[int, jax.Array] = {}
-        free: dict[int, list] = {}
-        for index, joint in enumerate(self.joints):
-            if joint.kind == "slide":
-                if joint.free:  # an unconstrained keypoint: its two coordinates
-                    free.setdefault(joint.keypoint, []).append(q[index])
-                    if len(free[joint.keypoint]) == 2:
-                        positions[joint.keypoint] = jnp.stack(free[joint.keypoint])
-                    continue
-                along = q[index] * jnp.asarray(joint.axis, dtype=q.dtype)
-                across = joint.level * jnp.asarray(joint.normal, dtype=q.dtype)
-                positions[joint.keypoint] = along + across
-                continue
-            angle = q[index] + (angles[joint.parent] if joint.relative else 0.0)
-            if joint.parent is None:
-                base = jnp.asarray(joint.pivot, dtype=q.dtype)
-            else:
-                base = positions[joint.parent]
-            positions[joint.keypoint] = base + joint.level * jnp.stack([jnp.sin(angle), -jnp.cos(angle)])
-            angles[joint.keypoint] = angle
-        return jnp.concatenate([positions[i] for i in range(self.count)])
-
-
-class _Inverse(eqx.Module):
-    coordinates: tuple[cldyn.AbstractCoordinate, ...]
-
-    def __call__(self, x):
-        return jnp.stack([c(x) for c in self.coordinates])
-
-
-@dataclasses.dataclass(frozen=True)
-class JointStructure:
-    """The joints of a planar chain of keypoints, read from a KeyCLD model's constraints.
-
-    **Fields:**
-
-    - `names`: one name per joint (MuJoCo's joint names where given).
-    - `kinds`: `"hinge"` or `"slide"` per joint.
-    - `coordinates`: name -> `cldyn.AbstractCoordinate` (`HingeAngle`, `SliderPosition`), what
-      `cldyn.identify`'s `joint_coordinates` takes.
-    - `joint_map`: the `cldyn.JointMap` between joints and keypoints, with link lengths measured on the
-      data.
-    - `levels`: the measured link lengths (hinges) and rail heights (slides), in keypoint units.
-    """
-
-    names: tuple[str, ...]
-    kinds: tuple[str, ...]
-    coordinates: dict[str, cldyn.AbstractCoordinate]
-    joint_map: cldyn.JointMap
-    levels: tuple[float, ...]
-
-
-def joint_structure(
-    constraint: cldyn.AbstractConstraint | None,
-    x: Float[ArrayLike, "*batch k"],
-    names: Sequence[str] | None = None,
-) -> JointStructure:
-    """The joints of a planar chain of keypoints, from the constraints that tie them.
-
-    `Anchor(i)` is a hinge about a fixed point, `Distance(i, j)` a hinge of `j` about `i` (measured
-    from the direction of the link before it when `i` is itself hinged, as MuJoCo's hinges are), and
-    `FixedCoordinate(i, axis)` a slide along the other axis and a one-row `LinearConstraint` on one
-    keypoint a slide along its rail (rightwards, or upwards for a vertical rail); a keypoint without a
-    constraint is two slides. Hinge angles are counter-clockwise from straight down (or from the parent link).
-
-    **Arguments:**
-
-    - `constraint`: the model's constraint (`model.constraint`).
-    - `x`: keypoints `(..., k)` on which the link lengths and rail heights are measured (medians).
-    - `names`: a name per joint in the order of the keypoints they place (e.g. MuJoCo's joint names
-      of the scene); `joint_0`, `joint_1`, ... by default.
-
-    **Returns:** a `keyvision.JointStructure`. Constraints that are not a planar chain (a keypoint
-    constrained twice, a loop, other kinds of constraint) raise a `ValueError` that says which.
-
-    !!! example
-
-        ```python
-        structure = keyvision.joint_structure(cldyn.keycld_constraint("acrobot"), keypoints,
-                                              names=["shoulder", "elbow"])
-        ```
-    """
-    x = np.asarray(x, dtype=float)
-    if x.ndim < 1 or x.shape[-1] % 2:
-        raise ValueError(f"joint_structure: keypoints must be (..., k) with k even, got {x.shape}")
-    joints = _chain(constraint, x)
-    if names is None:
-        names = [f"joint_{i}" for i in range(len(joints))]
-    names = tuple(str(n) for n in names)
-    if len(names) != len(joints):
-        raise ValueError(f"joint_structure: {len(names)} names for the chain's {len(joints)} joints")
-    parents = {j.keypoint: j.parent for j in joints if j.kind == "hinge"}
-    coordinates = tuple(_coordinate(j, parents) for j in joints)
-    joint_map = cldyn.JointMap(
-        forward=_Forward(tuple(joints), x.shape[-1] // 2), inverse=_Inverse(coordinates), names=names
-    )
-    return JointStructure(
-        names=names,
-        kinds=tuple(j.kind for j in joints),
-        coordinates=dict(zip(names, coordinates)),
-        joint_map=joint_map,
-        levels=tuple(j.level for j in joints),
-    )
 
 
 def energy_scale(
@@ -410,7 +178,8 @@ def identify(
     """Find the effects that a KeyCLD model learnt from images is missing, from frames of the system.
 
     The frames are encoded by the model's estimator; the keypoints' constraints give the joints
-    (`keyvision.joint_structure`, named after the scene's MuJoCo joints); `cldyn.identify` runs with
+    (`keyvision.joint_structure`, named after the scene's MuJoCo joints; `keyvision.scene_joints` for
+    constraints whose geometry only the scene gives); `cldyn.identify` runs with
     the learnt dynamics as the nominal model, in float64; the detected effects are converted to
     MuJoCo's units with the camera's scale (`metres_per_unit`) and the energy scale fixed by the
     scene's actuator gears (`energy_scale`). What can be identified from images: effects at the joints
@@ -420,8 +189,9 @@ def identify(
 
     **Arguments:**
 
-    - `model`: a `keyvision.KeyCLD` whose dynamics are a `ConstrainedLagrangian` with a planar chain
-      of constraints (KeyCLD's scenes).
+    - `model`: a `keyvision.KeyCLD` whose dynamics are a `ConstrainedLagrangian`: with a planar chain
+      of constraints (KeyCLD's scenes), or the constraints of the frames' scene
+      (`keyvision.scene_constraint`, any tree of hinges and slides that `cldyn.mujoco.from_mjcf` reads).
     - `frames`: `keyvision.Frames` of the real system, rendered from a MuJoCo scene
       (`frames.info["mjcf_xml"]` names the joints and gives the gears): the training runs are
       identified, the validation runs score the model before and after in images (VPT, MSE).
@@ -470,7 +240,7 @@ def identify(
     x = np.asarray(encode_sequences(model, ImageSequences.from_frames(measured)).x, dtype=np.float64)
     dynamics = jax.tree.map(lambda a: a.astype(jnp.float64) if eqx.is_inexact_array(a) else a, model.dynamics)
     names = list(frames.info.get("joint_names", []))
-    structure = joint_structure(dynamics.constraint, x, names if len(names) else None)
+    structure = model_joints(dynamics.constraint, x, frames, names if len(names) else None)
     # an estimated keypoint is not exactly a rigid point of its body (it slides by a fraction of a
     # pixel with the pose, which identify's constraint check rejects as a wrong model): the joints
     # read from the keypoints place a rigid chain of the measured lengths, x = F(q(x))

@@ -51,29 +51,7 @@ def scene_constraint(frames: Frames) -> cldyn.AbstractConstraint:
                                    constraint, key=jax.random.key(0))
         ```
     """
-    if not isinstance(frames, Frames):
-        raise TypeError(f"scene_constraint: frames must be keyvision.Frames, got {type(frames).__name__}")
-    xml = frames.info.get("mjcf_xml")
-    if not xml:
-        raise ValueError(
-            "scene_constraint: the frames carry no MJCF (frames.info['mjcf_xml']); render them again"
-        )
-    mujoco = optional_import("cldyn.mujoco", purpose="keyvision.scene_constraint")
-    linear, offset = _affine(frames.camera)
-    names = [str(name) for name in frames.info.get("keypoint_names", [])]
-    # keypoints rendered at named sites (`keyvision.render(keypoints=)`) are the same sites for from_mjcf
-    at_sites = bool(names) and set(names) <= set(_site_names(xml))
-    try:
-        bridge = mujoco.from_mjcf(xml, keypoints=names if at_sites else None)
-    except ValueError as error:
-        raise ValueError(f"scene_constraint: the scene on the frames' keypoints: {error}") from None
-    if names and len(bridge.keypoint_names) != len(names):  # the same points are checked below
-        chosen = ", ".join(bridge.keypoint_names)
-        raise ValueError(
-            f"scene_constraint: the scene's constraints are on the keypoints {chosen} (cldyn.mujoco."
-            f"from_mjcf's choice: a turning body needs a keypoint of its own); the frames have "
-            f"{', '.join(names)}. Render them at sites placed there (keyvision.render(keypoints=))"
-        )
+    bridge, linear, offset, names = scene_bridge(frames, "scene_constraint")
     plane = bridge.system.constraint
     if plane is None:
         raise ValueError("scene_constraint: the scene has no constraints on its keypoints")
@@ -87,6 +65,33 @@ def scene_constraint(frames: Frames) -> cldyn.AbstractConstraint:
     return mapped[0] if len(mapped) == 1 else cldyn.Stack(mapped)
 
 
+def scene_bridge(frames: Frames, caller: str) -> tuple:
+    """`(from_mjcf's model of the frames' scene on their keypoints, A, b, keypoint names)`, with
+    `plane = A @ image + b` the camera's map; errors name `caller`."""
+    if not isinstance(frames, Frames):
+        raise TypeError(f"{caller}: frames must be keyvision.Frames, got {type(frames).__name__}")
+    xml = frames.info.get("mjcf_xml")
+    if not xml:
+        raise ValueError(f"{caller}: the frames carry no MJCF (frames.info['mjcf_xml']); render them again")
+    mujoco = optional_import("cldyn.mujoco", purpose=f"keyvision.{caller}")
+    linear, offset = _affine(frames.camera, caller)
+    names = [str(name) for name in frames.info.get("keypoint_names", [])]
+    # keypoints rendered at named sites (`keyvision.render(keypoints=)`) are the same sites for from_mjcf
+    at_sites = bool(names) and set(names) <= set(_site_names(xml))
+    try:
+        bridge = mujoco.from_mjcf(xml, keypoints=names if at_sites else None)
+    except ValueError as error:
+        raise ValueError(f"{caller}: the scene on the frames' keypoints: {error}") from None
+    if names and len(bridge.keypoint_names) != len(names):  # the same points are checked below
+        chosen = ", ".join(bridge.keypoint_names)
+        raise ValueError(
+            f"{caller}: the scene's constraints are on the keypoints {chosen} (cldyn.mujoco."
+            f"from_mjcf's choice: a turning body needs a keypoint of its own); the frames have "
+            f"{', '.join(names)}. Render them at sites placed there (keyvision.render(keypoints=))"
+        )
+    return bridge, linear, offset, names
+
+
 def _site_names(xml: str) -> list[str]:
     import mujoco
 
@@ -96,19 +101,19 @@ def _site_names(xml: str) -> list[str]:
     return [mujoco.mj_id2name(model, mujoco.mjtObj.mjOBJ_SITE, i) or "" for i in range(model.nsite)]
 
 
-def _affine(camera) -> tuple[np.ndarray, np.ndarray]:
+def _affine(camera, caller: str = "scene_constraint") -> tuple[np.ndarray, np.ndarray]:
     """`A` and `b` of plane = A @ image + b, checked to be a similarity."""
     h = np.asarray(camera.homography, dtype=float)
     if np.max(np.abs(h[2, :2])) > _AFFINE_TOL * abs(h[2, 2]):
         raise ValueError(
-            "scene_constraint: the camera sees the plane in perspective (its homography is not affine); "
+            f"{caller}: the camera sees the plane in perspective (its homography is not affine); "
             "distances in the plane are not distances in the image"
         )
     linear = h[:2, :2] / h[2, 2]
     gram = linear.T @ linear
     if not np.allclose(gram, gram[0, 0] * np.eye(2), rtol=0, atol=1e-9 * abs(gram[0, 0])):
         raise ValueError(
-            "scene_constraint: the camera stretches the plane unevenly (its map is not a similarity); "
+            f"{caller}: the camera stretches the plane unevenly (its map is not a similarity); "
             "distances in the plane are not distances in the image"
         )
     return linear, h[:2, 2] / h[2, 2]

@@ -1,6 +1,6 @@
-"""The joints of a model learnt from images, read from its constraints, against closed-form chains; the
-energy scale that the actuator gears fix, against a model whose input matrix is known; the unit
-conversions. (The whole path, frames to report, runs in tests/test_keyvision_cli.py.)"""
+"""The joints of a model learnt from images, read from its constraints or from its scene, against
+closed-form chains and MuJoCo's qpos; the energy scale that the actuator gears fix, against a model
+whose input matrix is known; the unit conversions. (The whole path, frames to report, runs in tests/test_keyvision_cli.py.)"""
 
 import jax
 import jax.numpy as jnp
@@ -10,6 +10,7 @@ import pytest
 import cldyn
 import keyvision
 from keyvision._identify import _convert, _joules_at, energy_scale, metres_per_unit
+from keyvision._joints import model_joints
 
 EXACT = 1e-12
 SAMPLES = 40
@@ -213,3 +214,112 @@ def test_the_balances_damping_is_added_only_where_it_lowers_the_held_out_rollout
     # where the force residual found a damping, the balance's is not added (and nothing is rolled out)
     found = [{"name": "joint_damping", "where": "elbow"}]
     assert add_checked_balance(system, entries(elbow=0.03), found, structure, free, held) == (system, [], [])
+
+
+# Scenes whose constraints in the image are forms joint_structure does not read: their joints come from
+# the scene (keyvision.scene_joints), checked against closed forms and MuJoCo's qpos.
+BEAD_ON_ARM = """
+<mujoco model="bead">
+  <option timestep="0.01" integrator="RK4"><flag contact="disable"/></option>
+  <worldbody>
+    <light pos="0 -1 4" dir="0 0 -1"/>
+    <camera name="fixed" pos="0.2 -4 0.8" zaxis="0 -1 0"/>
+    <body name="arm" pos="0 0 1">
+      <joint name="swing" type="hinge" axis="0 1 0"/>
+      <geom type="capsule" fromto="0 0 0 0 0 -0.8" size="0.02" mass="0.5" rgba="0 1 0 1"/>
+      <site name="end" pos="0 0 -0.8"/>
+      <body name="bead" pos="0 0 -0.4">
+        <joint name="along" type="slide" axis="0 0 1"/>
+        <geom type="sphere" size="0.06" mass="0.3" rgba="1 0 0 1"/>
+        <site name="bead"/>
+      </body>
+    </body>
+  </worldbody>
+  <actuator><motor joint="swing"/></actuator>
+</mujoco>
+"""
+# a cart seen by two keypoints at its ends (tied to a body that does not turn), its pole hinged at the
+# cart's centre, which is no keypoint
+TWO_POINT_CART = """
+<mujoco model="two-point-cart">
+  <option timestep="0.01" integrator="RK4"><flag contact="disable"/></option>
+  <worldbody>
+    <light pos="0 -1 4" dir="0 0 -1"/>
+    <camera name="fixed" pos="0 -4 1" zaxis="0 -1 0"/>
+    <body name="cart" pos="0 0 0.7">
+      <joint name="rail" type="slide" axis="1 0 0"/>
+      <geom type="box" size="0.2 0.05 0.05" mass="1" rgba="1 0 0 1"/>
+      <site name="left" pos="-0.2 0 0"/>
+      <site name="right" pos="0.2 0 0"/>
+      <body name="pole">
+        <joint name="pivot" type="hinge" axis="0 1 0"/>
+        <geom type="capsule" fromto="0 0 0 0 0 0.6" size="0.03" mass="0.3" rgba="0 1 0 1"/>
+        <site name="top" pos="0 0 0.6"/>
+      </body>
+    </body>
+  </worldbody>
+  <actuator><motor joint="rail"/><motor joint="pivot"/></actuator>
+</mujoco>
+"""
+
+
+def _scene_frames(xml, keypoints):
+    pytest.importorskip("mujoco")
+    protocol = keyvision.RenderProtocol(runs=3, frames=6, validation_runs=1, image_size=16, slide_limit=0.2)
+    return keyvision.render(xml, protocol=protocol, keypoints=keypoints, cache=False, workers=1)
+
+
+def _check_scene_joints(frames, structure, closed_form):
+    """q(x) is MuJoCo's qpos (slides over the camera's metres per unit), F(q) the closed form seen by the
+    camera, and F(q(x)) = x on the frames' true keypoints."""
+    metres = metres_per_unit(frames.camera)
+    scales = np.where(np.array(structure.kinds) == "slide", metres, 1.0)
+    count = frames.extras["keypoints"].shape[-1] // 2
+    seen = frames.camera.to_image(frames.extras["keypoints"].reshape(-1, count, 2)).reshape(-1, 2 * count)
+    q = np.asarray(jax.vmap(structure.joint_map.inverse)(jnp.asarray(seen)))
+    np.testing.assert_allclose(q * scales, frames.extras["qpos"].reshape(-1, len(scales)), atol=1e-9)
+    pose = np.random.default_rng(1).uniform(-2, 2, (SAMPLES, len(scales))) * [1, 0.1][: len(scales)]
+    expected = frames.camera.to_image(closed_form(*pose.T).reshape(SAMPLES, count, 2)).reshape(SAMPLES, -1)
+    forward = np.asarray(jax.vmap(structure.joint_map.forward)(jnp.asarray(pose / scales)))
+    np.testing.assert_allclose(forward, expected, atol=1e-9)
+    np.testing.assert_allclose(jax.vmap(structure.joint_map.forward)(jnp.asarray(q)), seen, atol=1e-9)
+
+
+@pytest.mark.mujoco
+def test_a_bead_on_a_swinging_arm_has_the_scenes_hinge_and_slide():
+    frames = _scene_frames(BEAD_ON_ARM, ["bead", "end"])
+    constraint = keyvision.scene_constraint(frames)  # the pivot, and the bead's slide on the turning arm
+    with pytest.raises(ValueError, match="not one of a planar chain"):
+        keyvision.joint_structure(constraint, np.zeros(4))
+    structure = keyvision.scene_joints(frames)
+    assert structure.names == ("swing", "along") and structure.kinds == ("hinge", "slide")
+    assert structure.levels == ()
+
+    def closed_form(angle, slide):  # rotation about +y by q carries (0, 0, c) to (c sin q, c cos q)
+        bead = np.stack([(slide - 0.4) * np.sin(angle), 1 + (slide - 0.4) * np.cos(angle)], -1)
+        return np.concatenate([bead, np.stack([-0.8 * np.sin(angle), 1 - 0.8 * np.cos(angle)], -1)], -1)
+
+    _check_scene_joints(frames, structure, closed_form)
+    # keyvision.identify takes the scene's joints for such a model, refusing keypoints of another scene
+    x = np.zeros((5, 4))
+    assert model_joints(constraint, x, frames, None).names == ("swing", "along")
+    assert model_joints(cldyn.keycld_constraint("acrobot"), _acrobot(*np.ones((2, 5))), frames, None).levels
+    with pytest.raises(ValueError, match="the model has 3 keypoints, its frames' scene 2"):
+        model_joints(constraint, np.zeros((5, 6)), frames, None)
+
+
+@pytest.mark.mujoco
+def test_a_cart_seen_at_both_ends_with_a_pole_hinged_between_them():
+    frames = _scene_frames(TWO_POINT_CART, ["left", "right", "top"])
+    kinds = {type(part).__name__ for part in keyvision.scene_constraint(frames).constraints}
+    assert "LinearConstraint" in kinds and "NormConstraint" in kinds  # tied keypoints, an anchor off them
+    structure = keyvision.scene_joints(frames)
+    assert structure.names == ("rail", "pivot") and structure.kinds == ("slide", "hinge")
+
+    def closed_form(cart, angle):
+        height = np.full_like(cart, 0.7)
+        ends = [np.stack([cart - 0.2, height], -1), np.stack([cart + 0.2, height], -1)]
+        top = np.stack([cart + 0.6 * np.sin(angle), height + 0.6 * np.cos(angle)], -1)
+        return np.concatenate([*ends, top], -1)
+
+    _check_scene_joints(frames, structure, closed_form)
