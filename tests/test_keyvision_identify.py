@@ -1,6 +1,7 @@
 """The joints of a model learnt from images, read from its constraints or from its scene, against
 closed-form chains and MuJoCo's qpos; the energy scale that the actuator gears fix, against a model
-whose input matrix is known; the unit conversions. (The whole path, frames to report, runs in tests/test_keyvision_cli.py.)"""
+whose input matrix is known; the unit conversions. (The whole path, frames to report, runs in
+tests/test_keyvision_cli.py.)"""
 
 import jax
 import jax.numpy as jnp

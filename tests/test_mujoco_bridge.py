@@ -442,3 +442,25 @@ def test_scenes_differing_in_numbers_share_one_compilation():
         assert np.max(np.abs(results[xml] - expected)) < ACCEL_RTOL * np.max(np.abs(expected))
     assert len(traces) == 1
     assert np.max(np.abs(results[resized] - results[keycld_scene("acrobot")])) > 0.1
+
+
+def test_training_moves_the_springs_not_the_joint_conventions():
+    """A spring's rest and stiffness take gradients; the offsets by which the frame coordinates of a slide
+    on a turning body and a hinge below it match MuJoCo's qpos (geometry, as HingeAngle's are static)
+    take none, with cldyn.fit's default of training every array."""
+    from cldyn.mujoco._frames import FrameAngle, FrameSlide
+
+    bridge = from_mjcf(TELESCOPE, include=("damping", "stiffness", "armature"))
+    x, _ = bridge.joints.to_keypoints(jnp.array([0.4, 0.05, -0.3]), jnp.zeros(3))
+    grads = eqx.filter_grad(lambda system: system.potential(x))(bridge.system)
+    leaves = jax.tree_util.tree_leaves_with_path(grads)
+    frames = [p for p, _ in leaves if any(getattr(k, "name", "") == "offset" for k in p)]
+    assert frames  # the frame coordinates are there, and their offsets are arrays
+    for path, g in leaves:
+        names = [getattr(k, "name", "") for k in path]
+        if names[-1] == "offset":
+            assert np.all(np.asarray(g) == 0), path
+    rests = [g for p, g in leaves if getattr(p[-1], "name", "") == "rest"]
+    assert len(rests) == 2 and all(abs(float(g)) > 1e-6 for g in rests)
+    kinds = {type(c) for c in bridge.joint_coordinates}
+    assert FrameSlide in kinds or FrameAngle in kinds

@@ -9,6 +9,7 @@ only in numbers (a link length, a mass) share one compiled program.
 import dataclasses
 
 import equinox as eqx
+import jax
 import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float
@@ -49,6 +50,12 @@ class Affine:
         return AffineMap(jnp.asarray(self.matrix, dtype=float), jnp.asarray(self.const, dtype=float))
 
 
+def _fixed(offset: Array, dtype) -> Array:
+    """A coordinate's offset (MuJoCo's `qpos0`): its convention, not a parameter (a spring's rest is the
+    spring's own), so no gradient reaches it, as `HingeAngle`'s and `SliderPosition`'s are static."""
+    return jax.lax.stop_gradient(offset.astype(dtype))
+
+
 class FrameAngle(AbstractCoordinate):
     """A hinge angle read from two rigid groups' frames: `wrap(s * arg(z_child conj(z_parent)) - q0)`.
 
@@ -64,7 +71,7 @@ class FrameAngle(AbstractCoordinate):
         zc, zp = self.child(x), self.parent(x)
         cross = zp[0] * zc[1] - zp[1] * zc[0]
         dot = zp[0] * zc[0] + zp[1] * zc[1]
-        return wrap_angle(self.sign * jnp.arctan2(cross, dot) - self.offset.astype(x.dtype))
+        return wrap_angle(self.sign * jnp.arctan2(cross, dot) - _fixed(self.offset, x.dtype))
 
 
 class FrameSlide(AbstractCoordinate):
@@ -79,7 +86,7 @@ class FrameSlide(AbstractCoordinate):
     offset: Float[Array, ""]
 
     def __call__(self, x: Vector) -> Scalar:
-        return jnp.dot(self.displacement(x), self.axis(x)) - self.offset.astype(x.dtype)
+        return jnp.dot(self.displacement(x), self.axis(x)) - _fixed(self.offset, x.dtype)
 
 
 def _rotation(angle: Array) -> Array:
