@@ -21,7 +21,9 @@ import numpy as np
 from jaxtyping import ArrayLike, Float
 
 import cldyn
-from cldyn._constraint import Anchor, Distance, FixedCoordinate, LinearConstraint, Stack
+from cldyn._constraint import Anchor, Distance, FixedCoordinate, LinearConstraint, NormConstraint, Stack
+
+_LENGTH_TOL = 0.25  # relative: a length the model's keypoints keep, against the scene's
 
 
 @dataclasses.dataclass(frozen=True)
@@ -249,6 +251,10 @@ def joint_structure(
     )
 
 
+# the joint kind of each coordinate from_mjcf reads a joint by
+_KINDS = {"HingeAngle": "hinge", "FrameAngle": "hinge", "SliderPosition": "slide", "FrameSlide": "slide"}
+
+
 def _camera(module, dtype) -> tuple:
     """The camera's `A`, `b` (`plane = A @ image + b`) in `dtype`: geometry, no gradient."""
     return jax.lax.stop_gradient((module.linear.astype(dtype), module.offset.astype(dtype)))
@@ -332,9 +338,6 @@ def scene_joints(frames) -> JointStructure:
     return JointStructure(names, tuple(kinds), coordinates, joint_map, levels=())
 
 
-_KINDS = {"HingeAngle": "hinge", "FrameAngle": "hinge", "SliderPosition": "slide", "FrameSlide": "slide"}
-
-
 def _is_chain(constraint, count: int) -> bool:
     """Whether `joint_structure` reads every constraint: Anchor, Distance, a planar FixedCoordinate,
     a one-row LinearConstraint on one keypoint."""
@@ -359,4 +362,28 @@ def model_joints(constraint, x: np.ndarray, frames, names: Sequence[str] | None)
             f"identify: the model has {x.shape[-1] // 2} keypoints, its frames' scene {seen // 2}: "
             "the frames are not of the scene the model was trained on"
         )
+    _check_lengths(constraint, x.reshape(-1, x.shape[-1]), structure)
     return structure
+
+
+def _check_lengths(constraint, x: np.ndarray, structure: JointStructure) -> None:
+    """The scene's joints read keypoints at the scene's places: each distance the model's constraints
+    keep (a pivot's, a rod's, an anchor's off the keypoints) must be the scene's within `_LENGTH_TOL`.
+    Those constraints leave the lengths free, and an estimator may keep them at other values (a
+    keypoint drawn onto its pivot keeps its distance, zero)."""
+    rigid = jax.vmap(lambda y: structure.joint_map.forward(structure.joint_map.inverse(y)))(jnp.asarray(x))
+    index = 0
+    for leaf in _leaves(constraint):
+        count = leaf.num_constraints
+        if isinstance(leaf, Anchor | Distance | NormConstraint):
+            found = float(np.median(np.asarray(jax.vmap(leaf)(jnp.asarray(x)))))
+            scene = float(np.median(np.asarray(jax.vmap(leaf)(rigid))))
+            if abs(found - scene) > _LENGTH_TOL * abs(scene):
+                raise ValueError(
+                    f"identify: the model's keypoints keep constraint {index} ({type(leaf).__name__}) at "
+                    f"{found:.4g} image units, the scene at {scene:.4g}: its estimator does not place the "
+                    "keypoints where the scene's are, and the scene's joints (keyvision.scene_joints) cannot "
+                    "be read from them (keyvision train --candidates N picks, of N initialisations, the "
+                    "one whose keypoints best keep the constraints)"
+                )
+        index += count

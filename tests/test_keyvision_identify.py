@@ -301,12 +301,18 @@ def test_a_bead_on_a_swinging_arm_has_the_scenes_hinge_and_slide():
         return np.concatenate([bead, np.stack([-0.8 * np.sin(angle), 1 - 0.8 * np.cos(angle)], -1)], -1)
 
     _check_scene_joints(frames, structure, closed_form)
-    # keyvision.identify takes the scene's joints for such a model, refusing keypoints of another scene
-    x = np.zeros((5, 4))
+    # keyvision.identify takes the scene's joints for such a model, refusing keypoints of another scene,
+    # and keypoints that keep the constraints at other lengths than the scene's: here the arm's end
+    # drawn onto the pivot (a distance kept, zero), which a trained estimator did
+    x = frames.camera.to_image(frames.extras["keypoints"].reshape(-1, 2, 2)).reshape(-1, 4)
     assert model_joints(constraint, x, frames, None).names == ("swing", "along")
     assert model_joints(cldyn.keycld_constraint("acrobot"), _acrobot(*np.ones((2, 5))), frames, None).levels
     with pytest.raises(ValueError, match="the model has 3 keypoints, its frames' scene 2"):
         model_joints(constraint, np.zeros((5, 6)), frames, None)
+    collapsed = x.copy()
+    collapsed[:, 2:] = np.asarray(constraint.constraints[0].point) + 1e-3 * x[:, 2:]
+    with pytest.raises(ValueError, match=r"constraint 0 \(Anchor\) at 0.00\d+ image units, the scene at 0.4"):
+        model_joints(constraint, collapsed, frames, None)
 
 
 @pytest.mark.mujoco

@@ -28,7 +28,8 @@ def register(subparsers) -> None:
         help="find the physics a model learnt from images is missing, in frames of the system",
         description="Encode every frame of --data with the model's estimator, read the joints of the "
         "keypoints from the model's constraints (hinges and slides, named after the scene's MuJoCo "
-        "joints), run cldyn's identify with the learnt dynamics as the nominal model (float64), and "
+        "joints; from the scene itself where its constraints fix their geometry, as a slide on a turning "
+        "body), run cldyn's identify with the learnt dynamics as the nominal model (float64), and "
         "convert the detected effects to MuJoCo's units with the camera's scale and the energy scale "
         "that the scene's actuator gears fix. Writes cldyn's report (report.json, report.md, plots) and "
         "effects.json (every detection in MuJoCo's units and the model's, and the energy balance's missing "
