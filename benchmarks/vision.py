@@ -147,6 +147,7 @@ def scene(source: str, args) -> dict:
         "keypoint_tracking_r2": vpt.get("keypoint_tracking_r2"),
         "keypoint_error_px": vpt.get("keypoint_error_px"),
         "constraint_drift_px": vpt.get("constraint_drift_px"),
+        "keypoint_motion": vpt.get("keypoint_motion"),
         "validation_runs": vpt["runs"],
         "image_size": spec["image_size"],
         "width": spec["width"],
@@ -195,11 +196,13 @@ def main() -> None:
         "acrobot); error: held-out RMS pixels between the keypoints and MuJoCo's after an affine fit, per "
         "keypoint; drift: the RMS standard deviation of each constraint's value along a run of estimated "
         "keypoints, in pixels (0 for keypoints on rigid points of the bodies); training: the stages' wall "
-        "time as their histories recorded it.",
+        "time as their histories recorded it; motion: how far each keypoint moves over how far MuJoCo's "
+        "moves (near 0 for a keypoint that stands still, which the error and the drift cannot see; rows of "
+        "earlier runs lack it).",
         "",
-        "| scene | VPT mean | median | std | paper | ceiling | R^2 | error (px) | drift (px) | frames "
-        "| width | training (s) | images/s |",
-        "| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |",
+        "| scene | VPT mean | median | std | paper | ceiling | R^2 | error (px) | drift (px) | motion "
+        "| frames | width | training (s) | images/s |",
+        "| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |",
     ]
     for row in rows:
         seconds = sum((s["seconds"] or 0) for s in row["train"]["stages"].values())
@@ -214,7 +217,9 @@ def main() -> None:
         cells += ["-" if r2 is None else f"{r2:.3f}"]
         drift = row["constraint_drift_px"]
         cells += ["-" if error is None else " / ".join(f"{e:.2f}" for e in error)]
-        cells += ["-" if drift is None else " / ".join(f"{e:.2f}" for e in drift), f"{size}x{size}"]
+        motion = row.get("keypoint_motion")
+        cells += ["-" if drift is None else " / ".join(f"{e:.2f}" for e in drift)]
+        cells += ["-" if motion is None else " / ".join(f"{m:.2f}" for m in motion), f"{size}x{size}"]
         cells += [str(row["width"]), f"{seconds:.0f}", "-" if rate is None else f"{rate:.1f}"]
         lines.append("| " + " | ".join(cells) + " |")
     if result["note"]:

@@ -426,6 +426,9 @@ def test_demo_predicts_new_runs_with_the_shipped_model(tmp_path, capsys):
     assert record["keypoint_tracking_r2"] > 0.95
     # the pole's keypoint follows a point of the pole to about a pixel (an affine fit to MuJoCo's tip)
     assert len(record["keypoint_error_px"]) == 1 and 0 < record["keypoint_error_px"][0] < 1.5
+    # ... and moves with it: its distances from its mean position are those of the true tip's, scaled by
+    # where along the pole the estimator put it (0.36: about a third of the way from the pivot)
+    assert len(record["keypoint_motion"]) == 1 and 0.2 < record["keypoint_motion"][0] < 1.1
     assert record["autoencoder"]["vpt"]["mean"] > 0.9
     assert record["autoencoder"]["mse_over_threshold"] < 0.5
     assert record["vpt"]["mean"] > 0.2
@@ -451,3 +454,20 @@ def test_a_stage_that_diverged_says_what_is_kept_and_how_to_go_on(tmp_path):
     assert f"--networks-from {tmp_path}" in said
     (tmp_path / "model-autoencoder.eqx").unlink()  # without an autoencoder stage, no --networks-from
     assert "--networks-from" not in _diverged(error, tmp_path)
+
+
+def test_keypoint_motion_sees_a_keypoint_that_stands_still():
+    """The affine fit of the keypoint error maps any true pose onto a still keypoint exactly; the motion
+    ratio does not: the true keypoints scaled by 0.9 about any point move 0.9 as far, a still one 0."""
+    import types
+
+    from keyvision._cli._evaluate import _keypoint_error, _keypoint_motion
+
+    rng = np.random.default_rng(0)
+    truth = rng.normal(size=(40, 4))  # two keypoints, the camera the identity
+    validation = types.SimpleNamespace(
+        camera=types.SimpleNamespace(to_image=lambda p: p), extras={"keypoints": truth}, image_size=(16, 16)
+    )
+    estimated = np.concatenate([0.9 * truth[:, :2] + 0.3, np.full((40, 2), 0.25)], axis=1)
+    np.testing.assert_allclose(_keypoint_motion(validation, estimated), [0.9, 0.0], atol=1e-12)
+    np.testing.assert_allclose(_keypoint_error(validation, estimated), 0.0, atol=1e-9)  # blind to both
