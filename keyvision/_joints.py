@@ -23,7 +23,8 @@ from jaxtyping import ArrayLike, Float
 import cldyn
 from cldyn._constraint import Anchor, Distance, FixedCoordinate, LinearConstraint, NormConstraint, Stack
 
-_LENGTH_TOL = 0.25  # relative: a length the model's keypoints keep, against the scene's
+_LENGTH_TOL = 0.25  # relative: a hinge's distance from an anchor off the keypoints, against the scene's
+_COLLAPSED = 0.1  # a distance the keypoints keep below this fraction of the scene's: collapsed
 
 
 @dataclasses.dataclass(frozen=True)
@@ -362,28 +363,84 @@ def model_joints(constraint, x: np.ndarray, frames, names: Sequence[str] | None)
             f"identify: the model has {x.shape[-1] // 2} keypoints, its frames' scene {seen // 2}: "
             "the frames are not of the scene the model was trained on"
         )
-    _check_lengths(constraint, x.reshape(-1, x.shape[-1]), structure)
-    return structure
+    return _at_scene_lengths(constraint, x.reshape(-1, x.shape[-1]), structure)
 
 
-def _check_lengths(constraint, x: np.ndarray, structure: JointStructure) -> None:
-    """The scene's joints read keypoints at the scene's places: each distance the model's constraints
-    keep (a pivot's, a rod's, an anchor's off the keypoints) must be the scene's within `_LENGTH_TOL`.
-    Those constraints leave the lengths free, and an estimator may keep them at other values (a
-    keypoint drawn onto its pivot keeps its distance, zero)."""
-    rigid = jax.vmap(lambda y: structure.joint_map.forward(structure.joint_map.inverse(y)))(jnp.asarray(x))
-    index = 0
-    for leaf in _leaves(constraint):
-        count = leaf.num_constraints
-        if isinstance(leaf, Anchor | Distance | NormConstraint):
-            found = float(np.median(np.asarray(jax.vmap(leaf)(jnp.asarray(x)))))
-            scene = float(np.median(np.asarray(jax.vmap(leaf)(rigid))))
-            if abs(found - scene) > _LENGTH_TOL * abs(scene):
-                raise ValueError(
-                    f"identify: the model's keypoints keep constraint {index} ({type(leaf).__name__}) at "
-                    f"{found:.4g} image units, the scene at {scene:.4g}: its estimator does not place the "
-                    "keypoints where the scene's are, and the scene's joints (keyvision.scene_joints) cannot "
-                    "be read from them (keyvision train --candidates N picks, of N initialisations, the "
-                    "one whose keypoints best keep the constraints)"
-                )
-        index += count
+class _Moved(eqx.Module):
+    """`f(M x + t)`, or with `inverse`, `M^-1 (f(q) - t)`: a map read on keypoints moved to the scene's
+    lengths."""
+
+    function: object
+    matrix: Float[jax.Array, "k k"]
+    shift: Float[jax.Array, " k"]
+    inverse: bool = eqx.field(static=True, default=False)
+
+    def __call__(self, y):
+        matrix, shift = jax.lax.stop_gradient((self.matrix.astype(y.dtype), self.shift.astype(y.dtype)))
+        if self.inverse:
+            return jnp.linalg.solve(matrix, self.function(y) - shift)
+        return self.function(matrix @ y + shift)
+
+
+class _MovedCoordinate(cldyn.AbstractCoordinate):
+    moved: _Moved
+
+    def __call__(self, x):
+        return self.moved(x)
+
+
+def _at_scene_lengths(constraint, x: np.ndarray, structure: JointStructure) -> JointStructure:
+    """The scene's joints on keypoints that keep the model's constraints at their own lengths.
+
+    `Anchor` and `Distance` keep a distance at whatever value the estimator gives it, and a keypoint
+    may sit anywhere along its link (the shipped pendulum's at a third of the pole). Each keypoint
+    they place is moved along its ray from the pivot, or from its (moved) parent, by the ratio of the
+    scene's distance to its median along the data: `x_scene = M x + t`, affine, and the scene's
+    joints read `q(M x + t)`, its keypoints `M^-1 (F(q) - t)`. A distance kept below `_COLLAPSED` of
+    the scene's (a keypoint drawn onto its pivot) carries no joint and is refused, as is a hinge
+    whose anchor is no keypoint (`|d(x)|`) kept more than `_LENGTH_TOL` off the scene's."""
+    count = x.shape[-1] // 2
+    scene = np.asarray(structure.joint_map.keypoints(jnp.zeros(structure.joint_map.num_joints)))
+    blocks = {i: (np.eye(2 * count)[2 * i : 2 * i + 2], np.zeros(2)) for i in range(count)}
+    pending = []
+    for index, leaf in enumerate(_leaves(constraint)):
+        if not isinstance(leaf, Anchor | Distance | NormConstraint):
+            continue
+        found = float(np.median(np.asarray(jax.vmap(leaf)(jnp.asarray(x)))))
+        target = float(np.asarray(leaf(jnp.asarray(scene)))[0])
+        too_far = isinstance(leaf, NormConstraint) and abs(found - target) > _LENGTH_TOL * abs(target)
+        if too_far or found < _COLLAPSED * abs(target):
+            raise ValueError(
+                f"identify: the model's keypoints keep constraint {index} ({type(leaf).__name__}) at "
+                f"{found:.4g} image units, the scene at {target:.4g}: its estimator does not place the "
+                "keypoints where the scene's are, and the scene's joints (keyvision.scene_joints) cannot "
+                "be read from them (keyvision train --candidates N picks, of N initialisations, the "
+                "one whose keypoints best keep the constraints)"
+            )
+        if not isinstance(leaf, NormConstraint):
+            pending.append((leaf, target / found))
+    def rows(k):  # keypoint k's two coordinates picked from x
+        return np.eye(2 * count)[2 * k : 2 * k + 2]
+
+    while pending:  # a rod's child after its parent
+        waiting = {leaf.keypoint if isinstance(leaf, Anchor) else leaf.second for leaf, _ in pending}
+        ready = [(leaf, r) for leaf, r in pending if isinstance(leaf, Anchor) or leaf.first not in waiting]
+        if not ready:
+            raise ValueError("identify: the constraints' rods form a loop")
+        for leaf, ratio in ready:
+            if isinstance(leaf, Anchor):
+                k, point = leaf.keypoint, np.asarray(leaf.point, dtype=float)
+                blocks[k] = (ratio * rows(k), (1 - ratio) * point)
+            else:  # x'_j = x'_i + ratio (x_j - x_i)
+                (a, b), i, j = blocks[leaf.first], leaf.first, leaf.second
+                blocks[j] = (a + ratio * (rows(j) - rows(i)), b)
+        pending = [(leaf, r) for leaf, r in pending if all(leaf is not done for done, _ in ready)]
+    matrix = jnp.asarray(np.concatenate([blocks[i][0] for i in range(count)]))
+    shift = jnp.asarray(np.concatenate([blocks[i][1] for i in range(count)]))
+    coordinates = {
+        name: _MovedCoordinate(_Moved(c, matrix, shift)) for name, c in structure.coordinates.items()
+    }
+    forward = _Moved(structure.joint_map.forward, matrix, shift, inverse=True)
+    inverse = _Inverse(tuple(coordinates.values()))
+    joint_map = cldyn.JointMap(forward=forward, inverse=inverse, names=structure.names)
+    return dataclasses.replace(structure, coordinates=coordinates, joint_map=joint_map)

@@ -301,14 +301,23 @@ def test_a_bead_on_a_swinging_arm_has_the_scenes_hinge_and_slide():
         return np.concatenate([bead, np.stack([-0.8 * np.sin(angle), 1 - 0.8 * np.cos(angle)], -1)], -1)
 
     _check_scene_joints(frames, structure, closed_form)
-    # keyvision.identify takes the scene's joints for such a model, refusing keypoints of another scene,
-    # and keypoints that keep the constraints at other lengths than the scene's: here the arm's end
-    # drawn onto the pivot (a distance kept, zero), which a trained estimator did
+    # keyvision.identify takes the scene's joints for such a model, refusing keypoints of another scene
     x = frames.camera.to_image(frames.extras["keypoints"].reshape(-1, 2, 2)).reshape(-1, 4)
     assert model_joints(constraint, x, frames, None).names == ("swing", "along")
     assert model_joints(cldyn.keycld_constraint("acrobot"), _acrobot(*np.ones((2, 5))), frames, None).levels
     with pytest.raises(ValueError, match="the model has 3 keypoints, its frames' scene 2"):
         model_joints(constraint, np.zeros((5, 6)), frames, None)
+    # an arm keypoint that sits partway along the arm keeps the pivot's constraint at its own length:
+    # it is moved to the scene's along its ray, so the joints read on it are the scene's, and the joints'
+    # keypoints are the model's again
+    partway = x.copy()
+    pivot = np.asarray(constraint.constraints[0].point)
+    partway[:, 2:] = pivot + 0.46 * (x[:, 2:] - pivot)
+    read = model_joints(constraint, partway, frames, None).joint_map
+    q = np.asarray(jax.vmap(read.inverse)(jnp.asarray(partway)))
+    np.testing.assert_allclose(q, jax.vmap(structure.joint_map.inverse)(jnp.asarray(x)), atol=1e-9)
+    np.testing.assert_allclose(jax.vmap(read.forward)(jnp.asarray(q)), partway, atol=1e-9)
+    # and refusing a distance kept near zero: the arm's end drawn onto the pivot, as an estimator did
     collapsed = x.copy()
     collapsed[:, 2:] = np.asarray(constraint.constraints[0].point) + 1e-3 * x[:, 2:]
     with pytest.raises(ValueError, match=r"constraint 0 \(Anchor\) at 0.00\d+ image units, the scene at 0.4"):
