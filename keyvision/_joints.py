@@ -419,6 +419,7 @@ def _at_scene_lengths(constraint, x: np.ndarray, structure: JointStructure) -> J
             )
         if not isinstance(leaf, NormConstraint):
             pending.append((leaf, target / found))
+
     def rows(k):  # keypoint k's two coordinates picked from x
         return np.eye(2 * count)[2 * k : 2 * k + 2]
 
