@@ -256,38 +256,71 @@ def joint_structure(
 _KINDS = {"HingeAngle": "hinge", "FrameAngle": "hinge", "SliderPosition": "slide", "FrameSlide": "slide"}
 
 
-def _camera(module, dtype) -> tuple:
-    """The camera's `A`, `b` (`plane = A @ image + b`) in `dtype`: geometry, no gradient."""
-    return jax.lax.stop_gradient((module.linear.astype(dtype), module.offset.astype(dtype)))
-
-
-class _Seen(cldyn.AbstractCoordinate):
-    """A coordinate of the plane's keypoints read on image keypoints, `q((I kron A) x + 1 kron b) / s`
-    (`s` metres per image unit for a slide, 1 for a hinge)."""
+class _Through(cldyn.AbstractCoordinate):
+    """A coordinate of the scene's planar keypoints read on image keypoints, `q(M x + t) / s`: `M`, `t`
+    the camera's map (and any move of the keypoints before it), `s` metres per image unit for a slide."""
 
     coordinate: cldyn.AbstractCoordinate
-    linear: Float[jax.Array, "2 2"]
-    offset: Float[jax.Array, " 2"]
+    matrix: Float[jax.Array, "k k"]
+    shift: Float[jax.Array, " k"]
     scale: float = eqx.field(static=True)
 
     def __call__(self, x):
-        linear, offset = _camera(self, x.dtype)
-        return self.coordinate((x.reshape(-1, 2) @ linear.T + offset[None]).reshape(-1)) / self.scale
+        matrix, shift = jax.lax.stop_gradient((self.matrix.astype(x.dtype), self.shift.astype(x.dtype)))
+        return self.coordinate(matrix @ x + shift) / self.scale
 
 
-class _SeenForward(eqx.Module):
-    """`x = F(q)` in the image: slides from image units to metres, the scene's forward kinematics, then
-    the plane to the image."""
+class _ThroughForward(eqx.Module):
+    """`x = M^-1 (F(s q) - t)`: slides from image units to metres, the scene's forward kinematics, then
+    back through the map of `_Through`."""
 
     forward: eqx.Module
-    linear: Float[jax.Array, "2 2"]
-    offset: Float[jax.Array, " 2"]
+    matrix: Float[jax.Array, "k k"]
+    shift: Float[jax.Array, " k"]
     scales: tuple[float, ...] = eqx.field(static=True)
 
     def __call__(self, q):
-        linear, offset = _camera(self, q.dtype)
-        plane = self.forward(q * jnp.asarray(self.scales, dtype=q.dtype)).reshape(-1, 2)
-        return jnp.linalg.solve(linear, (plane - offset[None]).T).T.reshape(-1)
+        matrix, shift = jax.lax.stop_gradient((self.matrix.astype(q.dtype), self.shift.astype(q.dtype)))
+        return jnp.linalg.solve(matrix, self.forward(q * jnp.asarray(self.scales, dtype=q.dtype)) - shift)
+
+
+@dataclasses.dataclass(frozen=True)
+class _Scene:
+    """The scene's joints in its plane (`cldyn.mujoco.from_mjcf`) and the camera's map to them,
+    `plane = M x + t` on the stacked keypoints."""
+
+    bridge: object
+    kinds: tuple[str, ...]
+    scales: tuple[float, ...]
+    matrix: np.ndarray
+    shift: np.ndarray
+
+    def structure(self, matrix: np.ndarray, shift: np.ndarray) -> JointStructure:
+        """The joints on keypoints `x` that `M x + t` maps to the image's."""
+        matrix, shift = jnp.asarray(self.matrix @ matrix), jnp.asarray(self.matrix @ shift + self.shift)
+        bridge, names = self.bridge, tuple(self.bridge.joint_names)
+        coordinates = tuple(
+            _Through(c, matrix, shift, s) for c, s in zip(bridge.joint_coordinates, self.scales)
+        )
+        forward = _ThroughForward(bridge.joints.forward, matrix, shift, self.scales)
+        joint_map = cldyn.JointMap(forward=forward, inverse=_Inverse(coordinates), names=names)
+        return JointStructure(names, self.kinds, dict(zip(names, coordinates)), joint_map, levels=())
+
+
+def _scene(frames) -> _Scene:
+    from ._structure import scene_bridge
+
+    bridge, linear, offset, _ = scene_bridge(frames, "scene_joints")
+    metres = float(np.sqrt(abs(np.linalg.det(linear))))  # per image unit: the map is a similarity
+    kinds = []
+    for name, coordinate in zip(bridge.joint_names, bridge.joint_coordinates):
+        kind = type(coordinate).__name__
+        if kind not in _KINDS:
+            raise ValueError(f"scene_joints: joint {name!r} is read by a {kind}, neither a hinge nor a slide")
+        kinds.append(_KINDS[kind])
+    scales = tuple(metres if kind == "slide" else 1.0 for kind in kinds)
+    count = len(bridge.keypoint_names)
+    return _Scene(bridge, tuple(kinds), scales, np.kron(np.eye(count), linear), np.tile(offset, count))
 
 
 def scene_joints(frames) -> JointStructure:
@@ -319,24 +352,9 @@ def scene_joints(frames) -> JointStructure:
         q = structure.joint_map.joints(x)   # MuJoCo's qpos from image keypoints x (slides in image units)
         ```
     """
-    from ._structure import scene_bridge
-
-    bridge, linear, offset, _ = scene_bridge(frames, "scene_joints")
-    metres = float(np.sqrt(abs(np.linalg.det(linear))))  # per image unit: the map is a similarity
-    linear, offset = jnp.asarray(linear, dtype=float), jnp.asarray(offset, dtype=float)
-    kinds = []
-    for name, coordinate in zip(bridge.joint_names, bridge.joint_coordinates):
-        kind = type(coordinate).__name__
-        if kind not in _KINDS:
-            raise ValueError(f"scene_joints: joint {name!r} is read by a {kind}, neither a hinge nor a slide")
-        kinds.append(_KINDS[kind])
-    scales = tuple(metres if kind == "slide" else 1.0 for kind in kinds)
-    coordinates = tuple(_Seen(c, linear, offset, s) for c, s in zip(bridge.joint_coordinates, scales))
-    names = tuple(bridge.joint_names)
-    forward = _SeenForward(bridge.joints.forward, linear, offset, scales)
-    joint_map = cldyn.JointMap(forward=forward, inverse=_Inverse(coordinates), names=names)
-    coordinates = dict(zip(names, coordinates))
-    return JointStructure(names, tuple(kinds), coordinates, joint_map, levels=())
+    scene = _scene(frames)
+    count = scene.shift.size
+    return scene.structure(np.eye(count), np.zeros(count))
 
 
 def _is_chain(constraint, count: int) -> bool:
@@ -356,41 +374,18 @@ def model_joints(constraint, x: np.ndarray, frames, names: Sequence[str] | None)
     gives."""
     if _is_chain(constraint, x.shape[-1] // 2):
         return joint_structure(constraint, x, names)
-    structure = scene_joints(frames)
-    seen = structure.joint_map.keypoints(jnp.zeros(structure.joint_map.num_joints)).shape[-1]
-    if seen != x.shape[-1]:
+    scene = _scene(frames)
+    if (seen := scene.shift.size) != x.shape[-1]:
         raise ValueError(
             f"identify: the model has {x.shape[-1] // 2} keypoints, its frames' scene {seen // 2}: "
             "the frames are not of the scene the model was trained on"
         )
-    return _at_scene_lengths(constraint, x.reshape(-1, x.shape[-1]), structure)
+    return scene.structure(*_to_scene_lengths(constraint, x.reshape(-1, x.shape[-1]), scene))
 
 
-class _Moved(eqx.Module):
-    """`f(M x + t)`, or with `inverse`, `M^-1 (f(q) - t)`: a map read on keypoints moved to the scene's
-    lengths."""
-
-    function: object
-    matrix: Float[jax.Array, "k k"]
-    shift: Float[jax.Array, " k"]
-    inverse: bool = eqx.field(static=True, default=False)
-
-    def __call__(self, y):
-        matrix, shift = jax.lax.stop_gradient((self.matrix.astype(y.dtype), self.shift.astype(y.dtype)))
-        if self.inverse:
-            return jnp.linalg.solve(matrix, self.function(y) - shift)
-        return self.function(matrix @ y + shift)
-
-
-class _MovedCoordinate(cldyn.AbstractCoordinate):
-    moved: _Moved
-
-    def __call__(self, x):
-        return self.moved(x)
-
-
-def _at_scene_lengths(constraint, x: np.ndarray, structure: JointStructure) -> JointStructure:
-    """The scene's joints on keypoints that keep the model's constraints at their own lengths.
+def _to_scene_lengths(constraint, x: np.ndarray, scene: _Scene) -> tuple[np.ndarray, np.ndarray]:
+    """`(M, t)`, the model's keypoints moved to the scene's lengths, `x_scene = M x + t`: the scene's
+    joints on keypoints that keep the model's constraints at their own.
 
     `Anchor` and `Distance` keep a distance at whatever value the estimator gives it, and a keypoint
     may sit anywhere along its link (the shipped pendulum's at a third of the pole). Each keypoint
@@ -400,14 +395,15 @@ def _at_scene_lengths(constraint, x: np.ndarray, structure: JointStructure) -> J
     the scene's (a keypoint drawn onto its pivot) carries no joint and is refused, as is a hinge
     whose anchor is no keypoint (`|d(x)|`) kept more than `_LENGTH_TOL` off the scene's."""
     count = x.shape[-1] // 2
-    scene = np.asarray(structure.joint_map.keypoints(jnp.zeros(structure.joint_map.num_joints)))
+    seen = scene.structure(np.eye(2 * count), np.zeros(2 * count)).joint_map
+    at_rest = jnp.asarray(seen.keypoints(jnp.zeros(seen.num_joints)))  # the scene's keypoints, in the image
     blocks = {i: (np.eye(2 * count)[2 * i : 2 * i + 2], np.zeros(2)) for i in range(count)}
     pending = []
     for index, leaf in enumerate(_leaves(constraint)):
         if not isinstance(leaf, Anchor | Distance | NormConstraint):
             continue
         found = float(np.median(np.asarray(jax.vmap(leaf)(jnp.asarray(x)))))
-        target = float(np.asarray(leaf(jnp.asarray(scene)))[0])
+        target = float(np.asarray(leaf(at_rest))[0])
         too_far = isinstance(leaf, NormConstraint) and abs(found - target) > _LENGTH_TOL * abs(target)
         if too_far or found < _COLLAPSED * abs(target):
             raise ValueError(
@@ -436,12 +432,5 @@ def _at_scene_lengths(constraint, x: np.ndarray, structure: JointStructure) -> J
                 (a, b), i, j = blocks[leaf.first], leaf.first, leaf.second
                 blocks[j] = (a + ratio * (rows(j) - rows(i)), b)
         pending = [(leaf, r) for leaf, r in pending if all(leaf is not done for done, _ in ready)]
-    matrix = jnp.asarray(np.concatenate([blocks[i][0] for i in range(count)]))
-    shift = jnp.asarray(np.concatenate([blocks[i][1] for i in range(count)]))
-    coordinates = {
-        name: _MovedCoordinate(_Moved(c, matrix, shift)) for name, c in structure.coordinates.items()
-    }
-    forward = _Moved(structure.joint_map.forward, matrix, shift, inverse=True)
-    inverse = _Inverse(tuple(coordinates.values()))
-    joint_map = cldyn.JointMap(forward=forward, inverse=inverse, names=structure.names)
-    return dataclasses.replace(structure, coordinates=coordinates, joint_map=joint_map)
+    matrix = np.concatenate([blocks[i][0] for i in range(count)])
+    return matrix, np.concatenate([blocks[i][1] for i in range(count)])
