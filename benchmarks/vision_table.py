@@ -12,8 +12,9 @@ by `keyvision train` with the same recipe (`benchmarks/vision.py`'s options) and
 - FC: KeyCLD's dynamics with the FC estimator and renderer (`--networks fc`, its own autoencoder).
 
 Every step is skipped when its output exists (a finished training is reused, an interrupted one
-resumed), so the budget can be spread over several calls. `--jobs N` runs N trainings at once, each a
-`keyvision train` process of its own (an ablation waits for the autoencoder stage it starts from): on a
+resumed), so the budget can be spread over several calls. `--jobs N` runs N trainings and evaluations at
+once, each a `keyvision train` or `keyvision evaluate` process of its own (an ablation waits for the
+autoencoder stage it starts from; a model is evaluated as soon as it is trained): on a
 GPU, small models leave most of it idle, and several trainings share it well; on 2 CPU cores two at
 once train at 1.3-1.4 times the rate of one (`benchmarks/vision_jobs.py`).
 Each model trained here records `device.json`: the device, how many trainings ran at once, the wall
@@ -150,11 +151,9 @@ def _train_and_evaluate(model: pathlib.Path, data: pathlib.Path, options: list, 
                 raise
         _record_device(model, device, 1, time.perf_counter() - started)
     note = _stopped(model)
-    stage = ["--stage", note["evaluated_stage"]] if note else []
-    evaluation = model.parent / f"{model.name}-evaluate"
-    if not (evaluation / "vpt.json").is_file():
-        _cli("evaluate", "--model", model, *stage, "--data", data, "--out", evaluation, "--overwrite")
-    vpt = json.loads((evaluation / "vpt.json").read_text())
+    if not _finished(model):
+        _cli(*_evaluate_arguments(model, data))
+    vpt = json.loads((_evaluation(model) / "vpt.json").read_text())
     trained_on = model / "device.json"
     on = json.loads(trained_on.read_text()) if trained_on.is_file() else None
     return {
@@ -166,6 +165,18 @@ def _train_and_evaluate(model: pathlib.Path, data: pathlib.Path, options: list, 
     }
 
 
+def _evaluation(model: pathlib.Path) -> pathlib.Path:
+    """Where `keyvision evaluate` writes a model's evaluation."""
+    return model.parent / f"{model.name}-evaluate"
+
+
+def _evaluate_arguments(model: pathlib.Path, data: pathlib.Path) -> list:
+    """`keyvision evaluate` of a trained model: of its last finished stage where it stopped early."""
+    note = _stopped(model)
+    stage = ["--stage", note["evaluated_stage"]] if note else []
+    return ["evaluate", "--model", model, *stage, "--data", data, "--out", _evaluation(model), "--overwrite"]
+
+
 def _ready(training: tuple) -> bool:
     """Whether the autoencoder stage that a training starts from (if any) is over."""
     source = training[3]
@@ -175,29 +186,43 @@ def _ready(training: tuple) -> bool:
 def _train_concurrently(trainings: list, jobs: int, device: str) -> None:
     """Run `trainings` (model, data, options, the model whose autoencoder it starts from or None) as up
     to `jobs` `keyvision train` processes at once, each writing `<model>-train.log`; a training that
-    starts from another's autoencoder waits until that stage is over. A training that fails with no
-    stage finished interrupts the others (each keeps its checkpoints) and ends the call."""
+    starts from another's autoencoder waits until that stage is over. Each trained model's `keyvision
+    evaluate` runs in the same pool (`<model>-evaluate.log`), before the trainings still waiting (so
+    that a call cut short leaves every model it trained evaluated); one that fails is left to the
+    table's own evaluation, which reports its error. A training that fails with no stage finished
+    interrupts the others (each keeps its checkpoints) and ends the call."""
     from cldyn._cli._common import INTERRUPTED  # a training's exit status when stopped by SIGINT
 
     pending = [t for t in trainings if not _trained(t[0])]
-    running: dict = {}
+    # trained, not evaluated yet: (model, data)
+    evaluations = [(t[0], t[1]) for t in trainings if _trained(t[0]) and not _finished(t[0])]
+    running: dict = {}  # (model, "train" or "evaluate") -> (process, log, started)
+
+    def start(model: pathlib.Path, kind: str, arguments: list) -> None:
+        log = model.parent / f"{model.name}-{kind}.log"
+        command = [sys.executable, "-m", "keyvision", *(str(a) for a in arguments)]
+        with log.open("w") as stream:
+            process = subprocess.Popen(command, stdout=stream, stderr=subprocess.STDOUT)
+        running[model, kind] = (process, log, time.perf_counter())
+        print(f"{kind} {model} ({len(running)} at once; log {log})", flush=True)
+
     try:
-        while pending or running:
+        while pending or evaluations or running:
+            while evaluations and len(running) < jobs:
+                model, data = evaluations.pop(0)
+                start(model, "evaluate", _evaluate_arguments(model, data))
             for training in [t for t in pending if _ready(t)][: jobs - len(running)]:
-                model, data, options, _ = training
-                log = model.parent / f"{model.name}-train.log"
-                command = [sys.executable, "-m", "keyvision"]
-                command += [str(a) for a in _train_arguments(model, data, options)]
-                with log.open("w") as stream:
-                    process = subprocess.Popen(command, stdout=stream, stderr=subprocess.STDOUT)
-                running[model] = (process, log, time.perf_counter())
                 pending.remove(training)
-                print(f"training {model} ({len(running)} at once; log {log})", flush=True)
-            for model, (process, log, started) in list(running.items()):
+                start(training[0], "train", _train_arguments(*training[:3]))
+            for (model, kind), (process, log, started) in list(running.items()):
                 if process.poll() is None:
                     continue
-                del running[model]
+                del running[model, kind]
                 seconds, status = time.perf_counter() - started, process.returncode
+                if kind == "evaluate":
+                    said = "evaluated" if status == 0 else f"failed to evaluate (status {status}; see {log})"
+                    print(f"{said} {model} in {seconds / 60:.1f} min", flush=True)
+                    continue
                 if status in (INTERRUPTED, -signal.SIGINT):  # not a result: stop, resumable
                     raise SystemExit(
                         f"vision_table: {model} was interrupted (its checkpoints kept; the same "
@@ -207,12 +232,13 @@ def _train_concurrently(trainings: list, jobs: int, device: str) -> None:
                     raise SystemExit(f"keyvision train failed for {model} (status {status}): see {log}")
                 _record_device(model, device, jobs, seconds)
                 print(f"trained {model} in {seconds / 60:.1f} min", flush=True)
-            if pending and not running and not any(_ready(t) for t in pending):
+                evaluations.append((model, next(t[1] for t in trainings if t[0] == model)))
+            if pending and not running and not evaluations and not any(_ready(t) for t in pending):
                 raise SystemExit("vision_table: trainings wait for an autoencoder that no training makes")
             time.sleep(1)
     finally:
         for process, _, _ in running.values():
-            process.send_signal(signal.SIGINT)  # `keyvision train` checkpoints and stops
+            process.send_signal(signal.SIGINT)  # `keyvision train` checkpoints and stops; evaluate stops
         for process, _, _ in running.values():
             process.wait()
 
@@ -331,6 +357,12 @@ def main() -> None:
         help="start each seed s of an ablation of the dynamics from the autoencoder of KeyCLD's seed s "
         "(seed 0's where KeyCLD has fewer seeds), not all from seed 0's",
     )
+    parser.add_argument(
+        "--results",
+        default=None,
+        help="the name of the files written to benchmarks/results (default: vision_table, "
+        "vision_table_augmented with --augment); another keeps a table trained elsewhere apart",
+    )
     add_recipe(parser, rounds=1)
     args = parser.parse_args()
     if args.jobs < 1:
@@ -411,12 +443,15 @@ def _plan(args, out: pathlib.Path) -> dict:
 
 
 def _name(args) -> str:
-    """The results' name: vision_table, or vision_table_augmented for the table trained with `--augment`."""
+    """The results' name: `--results`, else vision_table, or vision_table_augmented for the table trained
+    with `--augment`."""
+    if args.results:
+        return args.results
     return "vision_table_augmented" if args.augment else "vision_table"
 
 
 def _finished(model: pathlib.Path) -> bool:
-    return _trained(model) and (model.parent / f"{model.name}-evaluate" / "vpt.json").is_file()
+    return _trained(model) and (_evaluation(model) / "vpt.json").is_file()
 
 
 def _seed_counts(scenes: dict) -> str:
@@ -449,7 +484,7 @@ def _write(scenes: dict, args, device: str, seconds: float) -> None:
         "recipe": {
             name: getattr(args, name)
             for name in vars(args)
-            if name not in ("scenes", "out", "report", "models")
+            if name not in ("scenes", "out", "report", "models", "results")
         },
         "seconds_this_call": round(seconds, 1),
         "scenes": {
