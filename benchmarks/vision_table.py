@@ -198,11 +198,15 @@ def _train_concurrently(trainings: list, jobs: int, device: str) -> None:
     evaluations = [(t[0], t[1]) for t in trainings if _trained(t[0]) and not _finished(t[0])]
     running: dict = {}  # (model, "train" or "evaluate") -> (process, log, started)
 
+    # on a GPU each JAX process would ask for 75% of its memory at its start, and the second would fail:
+    # each takes what it needs instead, unless the caller said otherwise
+    environment = {"XLA_PYTHON_CLIENT_PREALLOCATE": "false", **os.environ}
+
     def start(model: pathlib.Path, kind: str, arguments: list) -> None:
         log = model.parent / f"{model.name}-{kind}.log"
         command = [sys.executable, "-m", "keyvision", *(str(a) for a in arguments)]
         with log.open("w") as stream:
-            process = subprocess.Popen(command, stdout=stream, stderr=subprocess.STDOUT)
+            process = subprocess.Popen(command, stdout=stream, stderr=subprocess.STDOUT, env=environment)
         running[model, kind] = (process, log, time.perf_counter())
         print(f"{kind} {model} ({len(running)} at once; log {log})", flush=True)
 
