@@ -441,10 +441,18 @@ def fit(
                     )
                 )
                 named = "" if stage is None else f" of stage {stage!r}"
+                advice = (
+                    # no update of this call came before: the learning rate played no part
+                    "The model this fit started from already gives it, before any update, so a lower "
+                    "learning rate cannot help: check the data for outliers and for states where the "
+                    "model is singular (a keypoint on a constraint's pivot), and the starting model for "
+                    "non-finite parameters."
+                    if step == start
+                    else "Lower the learning rate, check the data for outliers, or start from a checkpoint."
+                )
                 raise NonFiniteLossError(
                     f"fit: non-finite loss or gradient at step {step + 1}{named} (loss = {values[done]}); "
-                    f"stopped without applying the update; {where}. Lower the learning rate, check the "
-                    "data for outliers, or start from a checkpoint.",
+                    f"stopped without applying the update; {where}. {advice}",
                     step=step + 1,
                     model=eqx.combine(params, static),
                     checkpoint=None if saved_step is None else files["checkpoint"],

@@ -255,6 +255,20 @@ def test_nan_guard_stops_at_the_step_and_keeps_the_last_checkpoint(tmp_path):
     assert not (tmp_path / "model.eqx").exists()
 
 
+def test_nan_guard_at_the_first_step_blames_the_starting_model_not_the_learning_rate():
+    data = cldyn.Sequences(np.zeros((2, 5, 1)), None, 0.1)
+    loss = lambda model, batch: jnp.log(model.w) + 0.0 * jnp.sum(batch.x)  # noqa: E731
+    arguments = dict(loss=loss, steps=4, batching=cldyn.Runs(2), key=jax.random.key(0), dtype=None)
+    with pytest.raises(cldyn.NonFiniteLossError, match="step 1 ") as info:
+        cldyn.fit(_Scalar(jnp.array(-1.0)), data, optimizer=optax.sgd(0.1), **arguments)
+    said = str(info.value)
+    assert "already gives it, before any update" in said and "Lower the learning rate" not in said
+    # a later step (w = 0.2, then 0.2 - 0.3 / 0.2 = -1.3 after SGD's first) keeps the learning-rate advice
+    with pytest.raises(cldyn.NonFiniteLossError, match="step 2 ") as info:
+        cldyn.fit(_Scalar(jnp.array(0.2)), data, optimizer=optax.sgd(0.3), **arguments)
+    assert "Lower the learning rate" in str(info.value) and "before any update" not in str(info.value)
+
+
 def test_corrupt_or_foreign_checkpoints_are_refused_by_name(tmp_path):
     model, data = _tiny_fit_setup()
     options = dict(loss=cldyn.Collocation(), steps=4, batching=cldyn.Runs(4), key=jax.random.key(1))
