@@ -382,6 +382,10 @@ def main() -> None:
     import jax
 
     started = time.perf_counter()
+    call = {
+        "command": " ".join(["python", *sys.argv]),
+        "started": time.strftime("%Y-%m-%dT%H:%M:%S"),
+    }
     first = jax.devices()[0]
     device = str(first) if first.platform == "cpu" else f"{first} ({first.device_kind})"
     plans = {}
@@ -413,7 +417,7 @@ def main() -> None:
         _plot_frames(RESULTS / f"{results}_frames_{scene}.png", data, models)
         scenes[scene] = rows
         # written after every scene: a call cut short leaves the table of the scenes it finished
-        _write(scenes, args, device, time.perf_counter() - started)
+        _write(scenes, args, device, {**call, "seconds": round(time.perf_counter() - started, 1)})
 
 
 def _plan(args, out: pathlib.Path) -> dict:
@@ -480,17 +484,50 @@ def _seed_of(stop: dict) -> str:
     return f", seed {seed}" if seed.isdigit() else ""
 
 
-def _write(scenes: dict, args, device: str, seconds: float) -> None:
-    """benchmarks/results/vision_table{,_augmented}.{json,md} from the rows of the scenes done."""
+def _earlier(args, device: str, recipe: dict, call: dict, scenes: dict) -> tuple[dict, list]:
+    """The scenes of the table already written under this name that this call does not redo, with the
+    calls that made them: a table built over several calls (a scene per call on a device lent for a
+    while) keeps them, where the recipe (how many trainings ran at once aside) and the device agree.
+    Another recipe's or device's table is replaced, as it was before there were several calls."""
+    path = RESULTS / f"{_name(args)}.json"
+    if not path.is_file():
+        return {}, []
+    try:
+        earlier = json.loads(path.read_text())
+    except json.JSONDecodeError:  # a file cut short: nothing to keep
+        return {}, []
+
+    def same(r: dict) -> dict:
+        return {k: v for k, v in r.items() if k != "jobs"}
+
+    if same(earlier.get("recipe", {})) != same(recipe) or earlier.get("device") != device:
+        return {}, []
+    kept = {s: rows for s, rows in earlier["scenes"].items() if s not in scenes}
+    calls = earlier.get("calls") or [  # a table written before calls were recorded: one call
+        {"started": earlier["machine"]["date"], "seconds": earlier["seconds_this_call"], "scenes": [*kept]}
+    ]
+    others = [c for c in calls if c["started"] != call["started"]]  # this call's earlier scenes are redone
+    others = [{**c, "scenes": [s for s in c["scenes"] if s in kept]} for c in others]
+    return kept, [c for c in others if c["scenes"]]
+
+
+def _write(scenes: dict, args, device: str, call: dict) -> None:
+    """benchmarks/results/vision_table{,_augmented}.{json,md} (or `--results`) from the rows of the
+    scenes done, and of those an earlier call of the same recipe on the same device wrote there."""
+    recipe = {
+        name: getattr(args, name)
+        for name in vars(args)
+        if name not in ("scenes", "out", "report", "models", "results")
+    }
+    kept, calls = _earlier(args, device, recipe, call, scenes)
+    scenes = {**kept, **scenes}
+    calls = [*calls, {**call, "scenes": [s for s in scenes if s not in kept]}]
     result = {
         "machine": machine(),
         "device": device,
-        "recipe": {
-            name: getattr(args, name)
-            for name in vars(args)
-            if name not in ("scenes", "out", "report", "models", "results")
-        },
-        "seconds_this_call": round(seconds, 1),
+        "recipe": recipe,
+        "seconds_this_call": call["seconds"],
+        "calls": calls,
         "scenes": {
             s: {n: {k: v for k, v in r.items() if k != "mse_per_run"} for n, r in rows.items()}
             for s, rows in scenes.items()
@@ -563,6 +600,13 @@ def _write(scenes: dict, args, device: str, seconds: float) -> None:
     ]
     if stops:
         lines += ["", "\\* The training stopped before its end:", "", *stops]
+    if len(calls) > 1:
+        lines += ["", f"Built over {len(calls)} calls of the command, on {device}:", ""]
+        lines += [
+            f"- {', '.join(c['scenes'])}: {c['seconds']:.0f} s from {c['started']}"
+            + (f", `{c['command']}`" if c.get("command") else "")
+            for c in calls
+        ]
     write(_name(args), result, "\n".join(lines) + "\n")
 
 
