@@ -277,7 +277,9 @@ def fit(
 
     A non-finite loss or gradient at step `s` stops the fit with a `NonFiniteLossError` that names
     `s`; its update is not applied, the last checkpoint is left untouched, and the error carries the
-    last good model. A checkpoint that cannot be read raises a `CheckpointError` naming the file.
+    last good model. At the first step of a call no update has acted yet, and the error points at the
+    data and the starting model rather than the learning rate. A checkpoint that cannot be read raises
+    a `CheckpointError` naming the file.
 
     **Staged schedules** are successive calls on one directory, each with its `stage`, `trainable`
     and `loss`, each starting from the model the previous one returned. With `resume=True` on all
