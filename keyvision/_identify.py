@@ -193,8 +193,9 @@ def identify(
       of constraints (KeyCLD's scenes), or the constraints of the frames' scene
       (`keyvision.scene_constraint`, any tree of hinges and slides that `cldyn.mujoco.from_mjcf` reads),
       whose joints are then the scene's (`keyvision.scene_joints`), read on its keypoints moved along
-      their rays to the scene's lengths where a pivot or a rod keeps them at their own; a distance
-      kept near zero (a keypoint drawn onto its pivot) is refused, naming the constraint.
+      their rays to the scene's lengths where a pivot, a rod or a hinge whose anchor is no keypoint
+      keeps them at their own; a distance kept near zero (a keypoint drawn onto its pivot) is
+      refused, naming the constraint.
     - `frames`: `keyvision.Frames` of the real system, rendered from a MuJoCo scene
       (`frames.info["mjcf_xml"]` names the joints and gives the gears): the training runs are
       identified, the validation runs score the model before and after in images (VPT, MSE).

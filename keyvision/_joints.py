@@ -357,6 +357,16 @@ def scene_joints(frames) -> JointStructure:
     return scene.structure(np.eye(count), np.zeros(count))
 
 
+def _placed(leaf: NormConstraint, linear: np.ndarray) -> int | None:
+    """The keypoint `k` that `|d(x)|` places, `d = x_k - o(x)` in the scene's plane with `o` affine in
+    the other keypoints: the one whose block of `d`'s matrix is the camera's map to the plane,
+    `linear` (the identity on the plane's coordinates); None where there is no such one keypoint."""
+    matrix = np.asarray(leaf.difference.matrix, dtype=float)
+    blocks = matrix.reshape(2, -1, 2).transpose(1, 0, 2) @ np.linalg.inv(linear)
+    found = [k for k, block in enumerate(blocks) if np.allclose(block, np.eye(2), atol=1e-9)]
+    return found[0] if len(found) == 1 else None
+
+
 def _is_chain(constraint, count: int) -> bool:
     """Whether `joint_structure` reads every constraint: Anchor, Distance, a planar FixedCoordinate,
     a one-row LinearConstraint on one keypoint."""
@@ -391,10 +401,14 @@ def _to_scene_lengths(constraint, x: np.ndarray, scene: _Scene) -> tuple[np.ndar
     may sit anywhere along its link (the shipped pendulum's at a third of the pole). Each keypoint
     they place is moved along its ray from the pivot, or from its (moved) parent, by the ratio of the
     scene's distance to its median along the data: `x_scene = M x + t`, affine, and the scene's
-    joints read `q(M x + t)`, its keypoints `M^-1 (F(q) - t)`. A distance kept below `_COLLAPSED` of
-    the scene's (a keypoint drawn onto its pivot) carries no joint and is refused, as is a hinge
-    whose anchor is no keypoint (`|d(x)|`) kept more than `_LENGTH_TOL` off the scene's."""
+    joints read `q(M x + t)`, its keypoints `M^-1 (F(q) - t)`. A hinge whose anchor is no keypoint,
+    `|d(x)|` with `d = x_k - o(x)` for an affine anchor `o` of the other keypoints (a pole on a cart
+    seen at its two ends), moves `x_k` along `d` from its (moved) anchor the same way. A distance kept
+    below `_COLLAPSED` of the scene's (a keypoint drawn onto its pivot) carries no joint and is
+    refused, as is a `|d(x)|` that places no one keypoint kept more than `_LENGTH_TOL` off the
+    scene's."""
     count = x.shape[-1] // 2
+    linear = scene.matrix[:2, :2]  # the camera's map from the image to the plane, per keypoint
     seen = scene.structure(np.eye(2 * count), np.zeros(2 * count)).joint_map
     at_rest = jnp.asarray(seen.keypoints(jnp.zeros(seen.num_joints)))  # the scene's keypoints, in the image
     blocks = {i: (np.eye(2 * count)[2 * i : 2 * i + 2], np.zeros(2)) for i in range(count)}
@@ -404,33 +418,59 @@ def _to_scene_lengths(constraint, x: np.ndarray, scene: _Scene) -> tuple[np.ndar
             continue
         found = float(np.median(np.asarray(jax.vmap(leaf)(jnp.asarray(x)))))
         target = float(np.asarray(leaf(at_rest))[0])
+        placed = _placed(leaf, linear) if isinstance(leaf, NormConstraint) else None
         too_far = isinstance(leaf, NormConstraint) and abs(found - target) > _LENGTH_TOL * abs(target)
-        if too_far or found < _COLLAPSED * abs(target):
+        if (too_far and placed is None) or found < _COLLAPSED * abs(target):
+            # |d(x)| measures in the scene's plane, the rods in the image
+            units = "m of the scene's plane" if isinstance(leaf, NormConstraint) else "image units"
             raise ValueError(
                 f"identify: the model's keypoints keep constraint {index} ({type(leaf).__name__}) at "
-                f"{found:.4g} image units, the scene at {target:.4g}: its estimator does not place the "
+                f"{found:.4g} {units}, the scene at {target:.4g}: its estimator does not place the "
                 "keypoints where the scene's are, and the scene's joints (keyvision.scene_joints) cannot "
                 "be read from them (keyvision train --candidates N picks, of N initialisations, the "
                 "one whose keypoints best keep the constraints)"
             )
-        if not isinstance(leaf, NormConstraint):
+        if not isinstance(leaf, NormConstraint) or placed is not None:
             pending.append((leaf, target / found))
 
     def rows(k):  # keypoint k's two coordinates picked from x
         return np.eye(2 * count)[2 * k : 2 * k + 2]
 
+    def moves(leaf) -> int:  # the keypoint a constraint moves
+        if isinstance(leaf, Anchor):
+            return leaf.keypoint
+        return leaf.second if isinstance(leaf, Distance) else _placed(leaf, linear)
+
+    def after(leaf) -> set:  # the keypoints whose moved places it needs first
+        if isinstance(leaf, Anchor):
+            return set()
+        if isinstance(leaf, Distance):
+            return {leaf.first}
+        anchor = np.abs(np.asarray(leaf.difference.matrix)).reshape(2, count, 2).sum(axis=(0, 2)) > 0
+        return set(np.flatnonzero(anchor)) - {moves(leaf)}
+
     while pending:  # a rod's child after its parent
-        waiting = {leaf.keypoint if isinstance(leaf, Anchor) else leaf.second for leaf, _ in pending}
-        ready = [(leaf, r) for leaf, r in pending if isinstance(leaf, Anchor) or leaf.first not in waiting]
+        waiting = {moves(leaf) for leaf, _ in pending}
+        ready = [(leaf, r) for leaf, r in pending if not after(leaf) & waiting]
         if not ready:
             raise ValueError("identify: the constraints' rods form a loop")
         for leaf, ratio in ready:
             if isinstance(leaf, Anchor):
                 k, point = leaf.keypoint, np.asarray(leaf.point, dtype=float)
                 blocks[k] = (ratio * rows(k), (1 - ratio) * point)
-            else:  # x'_j = x'_i + ratio (x_j - x_i)
+            elif isinstance(leaf, Distance):  # x'_j = x'_i + ratio (x_j - x_i)
                 (a, b), i, j = blocks[leaf.first], leaf.first, leaf.second
                 blocks[j] = (a + ratio * (rows(j) - rows(i)), b)
+            else:  # d(x) = L (x_k - o(x)), L the map to the plane: x'_k = o(x') + ratio L^-1 d(x)
+                k, matrix = moves(leaf), np.asarray(leaf.difference.matrix, dtype=float)
+                const, inverse = np.asarray(leaf.difference.const, dtype=float), np.linalg.inv(linear)
+                others = matrix - linear @ rows(k)  # o(x) = -L^-1 (others x + const): zero on x_k
+                moved = np.concatenate([blocks[i][0] for i in range(count)])
+                shift = np.concatenate([blocks[i][1] for i in range(count)])
+                blocks[k] = (
+                    inverse @ (ratio * matrix - others @ moved),
+                    inverse @ ((ratio - 1) * const - others @ shift),
+                )
         pending = [(leaf, r) for leaf, r in pending if all(leaf is not done for done, _ in ready)]
     matrix = np.concatenate([blocks[i][0] for i in range(count)])
     return matrix, np.concatenate([blocks[i][1] for i in range(count)])

@@ -339,3 +339,20 @@ def test_a_cart_seen_at_both_ends_with_a_pole_hinged_between_them():
         return np.concatenate([*ends, top], -1)
 
     _check_scene_joints(frames, structure, closed_form)
+    # a pole keypoint 0.4 of the way up the pole keeps the hinge's |d(x)| at its own length, off the
+    # scene's by 60%: it is moved along the pole from the cart's centre (the mean of the two ends, no
+    # keypoint) to the scene's length, so the joints read on it are the scene's, and back
+    constraint = keyvision.scene_constraint(frames)
+    x = frames.camera.to_image(frames.extras["keypoints"].reshape(-1, 3, 2)).reshape(-1, 6)
+    centre = (x[:, 0:2] + x[:, 2:4]) / 2
+    partway = x.copy()
+    partway[:, 4:] = centre + 0.4 * (x[:, 4:] - centre)
+    read = model_joints(constraint, partway, frames, None).joint_map
+    q = np.asarray(jax.vmap(read.inverse)(jnp.asarray(partway)))
+    np.testing.assert_allclose(q, jax.vmap(structure.joint_map.inverse)(jnp.asarray(x)), atol=1e-9)
+    np.testing.assert_allclose(jax.vmap(read.forward)(jnp.asarray(q)), partway, atol=1e-9)
+    collapsed = x.copy()
+    collapsed[:, 4:] = centre + 1e-3 * (x[:, 4:] - centre)
+    said = r"\(NormConstraint\) at 0.000\d+ m of the scene's plane, the scene at 0.6:"
+    with pytest.raises(ValueError, match=said):
+        model_joints(constraint, collapsed, frames, None)
