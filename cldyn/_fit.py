@@ -44,14 +44,24 @@ class NonFiniteLossError(RuntimeError):
     """`fit` met a NaN or infinite loss or gradient and stopped.
 
     **Attributes:** `step` (the step that failed, counted from 1), `model` (the last good model),
-    `checkpoint` (the path of the last good checkpoint, or `None`).
+    `checkpoint` (the path of the last good checkpoint, or `None`), `before_any_update` (whether the
+    call had applied no update yet: the model it started from fails, whatever the learning rate).
     """
 
-    def __init__(self, message: str, *, step: int, model: Any, checkpoint: pathlib.Path | None):
+    def __init__(
+        self,
+        message: str,
+        *,
+        step: int,
+        model: Any,
+        checkpoint: pathlib.Path | None,
+        before_any_update: bool = False,
+    ):
         super().__init__(message)
         self.step = step
         self.model = model
         self.checkpoint = checkpoint
+        self.before_any_update = before_any_update
 
 
 @dataclasses.dataclass(frozen=True)
@@ -458,6 +468,7 @@ def fit(
                     step=step + 1,
                     model=eqx.combine(params, static),
                     checkpoint=None if saved_step is None else files["checkpoint"],
+                    before_any_update=step == start,
                 )
             last = step == steps
             if step % log_every == 0 or step % validate_every == 0 or last:

@@ -263,10 +263,12 @@ def test_nan_guard_at_the_first_step_blames_the_starting_model_not_the_learning_
         cldyn.fit(_Scalar(jnp.array(-1.0)), data, optimizer=optax.sgd(0.1), **arguments)
     said = str(info.value)
     assert "already gives it, before any update" in said and "Lower the learning rate" not in said
+    assert info.value.before_any_update
     # a later step (w = 0.2, then 0.2 - 0.3 / 0.2 = -1.3 after SGD's first) keeps the learning-rate advice
     with pytest.raises(cldyn.NonFiniteLossError, match="step 2 ") as info:
         cldyn.fit(_Scalar(jnp.array(0.2)), data, optimizer=optax.sgd(0.3), **arguments)
     assert "Lower the learning rate" in str(info.value) and "before any update" not in str(info.value)
+    assert not info.value.before_any_update
 
 
 def test_corrupt_or_foreign_checkpoints_are_refused_by_name(tmp_path):

@@ -451,7 +451,11 @@ def test_a_stage_that_diverged_says_what_is_kept_and_how_to_go_on(tmp_path):
     assert said.startswith(str(error))
     assert f"kept in {tmp_path} (autoencoder, dynamics, joint-2)" in said
     assert f"keyvision evaluate --model {tmp_path} --stage joint-2" in said
-    assert f"--networks-from {tmp_path}" in said
+    assert f"--networks-from {tmp_path}" in said and "(a lower --lr)" in said
+    # where the stage failed before any update, its learning rate played no part: not suggested
+    first = cldyn.NonFiniteLossError("fit: ...", step=1, model=None, checkpoint=None, before_any_update=True)
+    said = _diverged(first, tmp_path)
+    assert f"--networks-from {tmp_path}" in said and "--lr" not in said
     (tmp_path / "model-autoencoder.eqx").unlink()  # without an autoencoder stage, no --networks-from
     assert "--networks-from" not in _diverged(error, tmp_path)
 

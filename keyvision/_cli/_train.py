@@ -358,8 +358,9 @@ def _diverged(error, out) -> str:
         f"--model {out} --stage {finished[-1]}` evaluates the last."
     )
     if "autoencoder" in finished:
+        lower = "" if getattr(error, "before_any_update", False) else " (a lower --lr)"
         said += (
-            f" To go on from its autoencoder with other options (a lower --lr), start a new training "
+            f" To go on from its autoencoder with other options{lower}, start a new training "
             f"with --networks-from {out}."
         )
     return said
