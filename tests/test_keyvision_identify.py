@@ -286,6 +286,15 @@ def _check_scene_joints(frames, structure, closed_form):
     np.testing.assert_allclose(jax.vmap(structure.joint_map.forward)(jnp.asarray(q)), seen, atol=1e-9)
 
 
+def _check_moved(constraint, partway, x, frames, structure):
+    """The joints read on keypoints that keep a distance at their own length (`partway`) are the scene's
+    joints of the true keypoints `x`, and the joints' keypoints are `partway` again."""
+    read = model_joints(constraint, partway, frames, None).joint_map
+    q = np.asarray(jax.vmap(read.inverse)(jnp.asarray(partway)))
+    np.testing.assert_allclose(q, jax.vmap(structure.joint_map.inverse)(jnp.asarray(x)), atol=1e-9)
+    np.testing.assert_allclose(jax.vmap(read.forward)(jnp.asarray(q)), partway, atol=1e-9)
+
+
 @pytest.mark.mujoco
 def test_a_bead_on_a_swinging_arm_has_the_scenes_hinge_and_slide():
     frames = _scene_frames(BEAD_ON_ARM, ["bead", "end"])
@@ -313,10 +322,7 @@ def test_a_bead_on_a_swinging_arm_has_the_scenes_hinge_and_slide():
     partway = x.copy()
     pivot = np.asarray(constraint.constraints[0].point)
     partway[:, 2:] = pivot + 0.46 * (x[:, 2:] - pivot)
-    read = model_joints(constraint, partway, frames, None).joint_map
-    q = np.asarray(jax.vmap(read.inverse)(jnp.asarray(partway)))
-    np.testing.assert_allclose(q, jax.vmap(structure.joint_map.inverse)(jnp.asarray(x)), atol=1e-9)
-    np.testing.assert_allclose(jax.vmap(read.forward)(jnp.asarray(q)), partway, atol=1e-9)
+    _check_moved(constraint, partway, x, frames, structure)
     # and refusing a distance kept near zero: the arm's end drawn onto the pivot, as an estimator did
     collapsed = x.copy()
     collapsed[:, 2:] = np.asarray(constraint.constraints[0].point) + 1e-3 * x[:, 2:]
@@ -347,10 +353,7 @@ def test_a_cart_seen_at_both_ends_with_a_pole_hinged_between_them():
     centre = (x[:, 0:2] + x[:, 2:4]) / 2
     partway = x.copy()
     partway[:, 4:] = centre + 0.4 * (x[:, 4:] - centre)
-    read = model_joints(constraint, partway, frames, None).joint_map
-    q = np.asarray(jax.vmap(read.inverse)(jnp.asarray(partway)))
-    np.testing.assert_allclose(q, jax.vmap(structure.joint_map.inverse)(jnp.asarray(x)), atol=1e-9)
-    np.testing.assert_allclose(jax.vmap(read.forward)(jnp.asarray(q)), partway, atol=1e-9)
+    _check_moved(constraint, partway, x, frames, structure)
     collapsed = x.copy()
     collapsed[:, 4:] = centre + 1e-3 * (x[:, 4:] - centre)
     said = r"\(NormConstraint\) at 0.000\d+ m of the scene's plane, the scene at 0.6:"
