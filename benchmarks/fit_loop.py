@@ -1,11 +1,13 @@
 """Which step loop trains faster here: `cldyn.CompiledLoop` (the chunk as one `lax.while_loop`) or
 `cldyn.HostLoop` (one compiled step at a time, dispatched asynchronously)?
 
-Two jobs, each timed with both loops through `cldyn.fit` in the same run (the loops interleaved):
+Three jobs, each timed with both loops through `cldyn.fit` in the same run (the loops interleaved):
 keyvision's autoencoder of appendix A.4 on 64x64 frames (U-Net estimator and renderer, the
-reconstruction loss; images per second), and KeyCLD's pendulum dynamics on keypoint states (the
-collocation loss; steps per second). Each fit is timed after a first one that compiles it. Prints
-one JSON object and writes `benchmarks/results/fit_loop.json`.
+reconstruction loss; images per second), its joint stage (windows of frames, the reconstruction plus
+the dynamics loss on their keypoints; images per second), and KeyCLD's pendulum dynamics on keypoint
+states (the collocation loss; steps per second). `keyvision train --loop` chooses the loop of the
+stages of images; run this on a machine to choose it there. Each fit is timed after a first one
+that compiles it. Prints one JSON object and writes `benchmarks/results/fit_loop.json`.
 
     python benchmarks/fit_loop.py [--quick]
 """
@@ -46,6 +48,16 @@ def _images_job(width: int, batch: int):
     return model, data, options, batch
 
 
+def _joint_job(width: int, batch: int, window: int):
+    # the joint stage (c) of `keyvision.train` with the table's recipe: windows of frames, the
+    # reconstruction plus the collocation loss on their keypoints (weight 60 dt^4), everything trained
+    model, data, _, _ = _images_job(width, batch)
+    windows = np.random.default_rng(1).integers(0, 256, (64, window, 64, 64, 3), dtype=np.uint8)
+    data = keyvision.ImageSequences(windows, np.zeros((64, window, 1), np.float32), 0.02)
+    loss = keyvision.Reconstruction() + 60 * 0.02**4 * keyvision.KeypointDynamics(cldyn.Collocation())
+    return model, data, {"loss": loss, "batching": cldyn.Windows(batch, window)}, batch * window
+
+
 def _states_job():
     rng = np.random.default_rng(0)
     angles = rng.uniform(-np.pi, np.pi, (64, 1)) + 0.05 * np.arange(50)[None, :]
@@ -82,6 +94,10 @@ def main() -> None:
         row = _time(_images_job(width, 16), steps=4 if args.quick else 20, repeats=repeats)
         rows.append({"job": f"autoencoder 64x64, width {width}, batch 16", "unit": "images", **row})
         print(rows[-1], file=sys.stderr, flush=True)
+    row = _time(_joint_job(8 if args.quick else 16, 4, 10), steps=4, repeats=repeats)
+    width = 8 if args.quick else 16
+    rows.append({"job": f"joint stage 64x64, width {width}, 4 windows of 10", "unit": "images", **row})
+    print(rows[-1], file=sys.stderr, flush=True)
     row = _time(_states_job(), steps=50 if args.quick else 500, repeats=repeats)
     rows.append({"job": "KeyCLD pendulum on states, collocation, batch 32", "unit": "steps", **row})
     print(rows[-1], file=sys.stderr, flush=True)

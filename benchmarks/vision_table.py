@@ -356,6 +356,13 @@ def main() -> None:
         help="trainings at once, each its own process (several share a GPU well; 2 on 2 CPU cores)",
     )
     parser.add_argument(
+        "--loop",
+        choices=("host", "compiled"),
+        default="host",
+        help="`keyvision train --loop`: how the stages of images run their steps (a setting of the "
+        "machine, like --jobs: tables of either loop join)",
+    )
+    parser.add_argument(
         "--pair-autoencoders",
         action="store_true",
         help="start each seed s of an ablation of the dynamics from the autoencoder of KeyCLD's seed s "
@@ -445,7 +452,8 @@ def _plan(args, out: pathlib.Path) -> dict:
             paired = args.pair_autoencoders and s < len(rows["KeyCLD"])
             source = out / f"keycld-{s if paired else 0}" if shared else None
             share = ["--networks-from", source] if shared else []
-            options_s = [*(single if shared else recipe), *options, *share, "--seed", s]
+            loop = ["--loop", args.loop] if args.loop != "host" else []
+            options_s = [*(single if shared else recipe), *options, *share, *loop, "--seed", s]
             rows[name].append((out / f"{slug}-{s}", out / "data", options_s, source))
     return rows
 
@@ -487,8 +495,9 @@ def _seed_of(stop: dict) -> str:
 def _earlier(args, device: str, recipe: dict, call: dict, scenes: dict) -> tuple[dict, list]:
     """The scenes of the table already written under this name that this call does not redo, with the
     calls that made them: a table built over several calls (a scene per call on a device lent for a
-    while) keeps them, where the recipe (how many trainings ran at once aside) and the device agree.
-    Another recipe's or device's table is replaced, as it was before there were several calls."""
+    while) keeps them, where the recipe (how many trainings ran at once and the step loop aside) and
+    the device agree. Another recipe's or device's table is replaced, as it was before there were
+    several calls."""
     path = RESULTS / f"{_name(args)}.json"
     if not path.is_file():
         return {}, []
@@ -498,7 +507,7 @@ def _earlier(args, device: str, recipe: dict, call: dict, scenes: dict) -> tuple
         return {}, []
 
     def same(r: dict) -> dict:
-        return {k: v for k, v in r.items() if k != "jobs"}
+        return {k: v for k, v in r.items() if k not in ("jobs", "loop")}
 
     if same(earlier.get("recipe", {})) != same(recipe) or earlier.get("device") != device:
         return {}, []

@@ -78,7 +78,8 @@ class FitResult:
     - `seconds`: training time in seconds, over all sessions of a resumed fit.
     - `out`: the output directory, or `None`.
     - `settings`: the fit's settings as recorded in the checkpoint and the history (stage, key,
-      loss, batching, dtype, trainable parameters, data fingerprints, intervals, devices).
+      loss, batching, dtype, trainable parameters, data fingerprints, intervals, devices, the step
+      loop's class: a resumed fit may run another loop or on other devices).
     """
 
     model: Any
@@ -367,6 +368,7 @@ def fit(
         "validate_every": validate_every,
         "checkpoint_every": checkpoint_every,
         "devices": len(devices),
+        "loop": type(loop).__name__,
     }
     settings = json.loads(json.dumps(settings))
 

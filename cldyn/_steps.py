@@ -4,9 +4,9 @@ Both loops take the same steps with the same batches and the same guard against 
 a step whose loss or gradient is not finite changes nothing, and the chunk ends with the state before
 it. They differ in what XLA compiles. `CompiledLoop` compiles the whole chunk as one `lax.while_loop`;
 `HostLoop` compiles one step and dispatches it from Python, asynchronously, so the host still waits
-for the device only once per chunk. XLA's CPU backend runs convolutions inside a compiled loop about
-ten times slower than the same convolutions outside one (`benchmarks/fit_loop.py`), so networks of
-images train faster with `HostLoop` there, while small models gain from the compiled loop.
+for the device only once per chunk. XLA's CPU backend runs convolutions inside a compiled loop six to
+eight times slower than the same convolutions outside one (`benchmarks/results/fit_loop.json`), so
+networks of images train faster with `HostLoop` there, while small models gain from the compiled loop.
 """
 
 import abc

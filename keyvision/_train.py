@@ -377,6 +377,7 @@ def train(
     resume: bool = False,
     progress_meter: cldyn.AbstractProgressMeter = cldyn.NoProgressMeter(),
     devices: Sequence[jax.Device] | None = None,
+    loop: cldyn.AbstractStepLoop | None = None,
 ) -> TrainResult:
     """Train a KeyCLD model on frames, unsupervised, in four stages of `cldyn.fit`.
 
@@ -416,6 +417,12 @@ def train(
     - `resume`: continue from the checkpoints in `out`.
     - `progress_meter`: e.g. `cldyn.TextProgressMeter()`.
     - `devices`: the devices to shard the batch over (all local devices by default).
+    - `loop`: how the stages of images (the candidates' trials, (a), rigid and joint) run their
+      steps: `cldyn.HostLoop()` by default, one compiled step dispatched at a time, since XLA's CPU
+      backend runs convolutions inside a compiled loop several times slower
+      (`benchmarks/fit_loop.py`); `cldyn.CompiledLoop()` compiles each chunk of steps as one loop,
+      for a device that the dispatch from Python leaves idle. The same steps and batches either
+      way. The dynamics stages always run compiled.
 
     **Returns:** a `keyvision.TrainResult` with the model and each stage's `cldyn.FitResult`.
 
@@ -456,9 +463,11 @@ def train(
         out.mkdir(parents=True, exist_ok=True)
         record = {"schema": _SCHEMA, "key": _key_data(key), "schedule": schedule.describe()}
         atomic_write(out / "train.json", json.dumps(record, indent=1))
-    # XLA's CPU backend runs convolutions inside a compiled loop about ten times slower than outside
-    # one: the stages with networks of images dispatch one compiled step at a time
-    images_loop = cldyn.HostLoop()
+    # XLA's CPU backend runs convolutions inside a compiled loop several times slower than outside
+    # one: by default the stages with networks of images dispatch one compiled step at a time
+    if loop is not None and not isinstance(loop, cldyn.AbstractStepLoop):
+        raise TypeError(f"train: loop must be a cldyn step loop (HostLoop, CompiledLoop), got {loop!r}")
+    images_loop = cldyn.HostLoop() if loop is None else loop
     common = {
         "out": out,
         "resume": resume,

@@ -277,6 +277,8 @@ def test_training_continues_the_candidate_whose_keypoints_keep_the_constraints(t
     refused = r"choosing among candidates \(Schedule.candidates = 2\) needs dynamics with constraints"
     with pytest.raises(ValueError, match=refused):
         keyvision.train(free, data, key=jax.random.key(1), schedule=schedule)
+    with pytest.raises(TypeError, match="loop must be a cldyn step loop .* got 'compiled'"):
+        keyvision.train(candidates, data, key=jax.random.key(1), schedule=schedule, loop="compiled")
 
 
 class _Recorder(cldyn.AbstractProgressMeter):

@@ -659,9 +659,9 @@ def test_predict_starts_from_the_reconstruction_and_scores_a_vpt(trained):
 SHARDING_TOL = 1e-4  # keypoints (image-frame units) and pixels: float32 sums split in two, reordered
 LOSS_RTOL = 1e-4  # the collocation loss over the batch, float32, summed in two halves (7e-6 seen)
 _SHARDED = """
-import sys, dataclasses, jax, numpy as np, equinox as eqx
+import sys, json, dataclasses, jax, numpy as np, equinox as eqx
 sys.path.insert(0, {tests!r})
-import keyvision, test_keyvision_model as t
+import cldyn, keyvision, test_keyvision_model as t
 assert len(jax.devices()) == 2, jax.devices()
 frames, controls, _ = t.pendulum_frames(8, 8)
 data = keyvision.ImageSequences(frames, controls, t.DT)
@@ -672,6 +672,9 @@ schedule = dataclasses.replace(t.SCHEDULE, autoencoder_steps=1, autoencoder_batc
                                dynamics_batch=8, joint_steps=0, refit_steps=0, window=6, log_every=1)
 results = [keyvision.train(model, data, key=jax.random.key(1), schedule=schedule, devices=d)
            for d in (jax.devices()[:1], jax.devices())]
+# and on one device with the stages of images compiled as a loop (`loop=`): the same steps again
+looped = keyvision.train(model, data, key=jax.random.key(1), schedule=schedule, devices=jax.devices()[:1],
+                         loop=cldyn.CompiledLoop())
 # the functions, not the parameters: a convolution's bias before a GroupNorm has no gradient but
 # rounding noise, which Adam turns into steps of the learning rate's size in either run; and one step,
 # since Adam's normalisation amplifies the reordered sums' rounding from step to step
@@ -683,16 +686,19 @@ def outputs(m):
 one, two, start = outputs(results[0].model), outputs(results[1].model), outputs(model)
 moved = max(float(np.max(np.abs(a - b))) for a, b in zip(one, start))
 error = max(float(np.max(np.abs(a - b))) for a, b in zip(one, two))
+loop_error = max(float(np.max(np.abs(a - b))) for a, b in zip(one, outputs(looped.model)))
 # the dynamics stage's loss over its sharded batch (before its step)
 losses = [r.stages["dynamics"].history[0]["loss"] for r in results]
 loss_error = abs(losses[0] - losses[1]) / abs(losses[0])
 devices = [results[1].stages[stage].settings["devices"] for stage in ("autoencoder", "dynamics")]
-print(error, moved, loss_error, *devices)
+loops = [r.stages["autoencoder"].settings["loop"] for r in (results[0], looped)]
+print(json.dumps(dict(error=error, moved=moved, loss_error=loss_error, devices=devices, loop_error=loop_error,
+                      loops=loops)))
 """
 
 
 @pytest.mark.slow
-def test_training_sharded_over_two_devices_equals_one():
+def test_training_sharded_over_two_devices_or_run_in_a_compiled_loop_equals_one():
     import os
     import pathlib
     import subprocess
@@ -703,6 +709,9 @@ def test_training_sharded_over_two_devices_equals_one():
     script = _SHARDED.format(tests=str(pathlib.Path(__file__).parent))
     run = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, env=env, timeout=600)
     assert run.returncode == 0, run.stderr[-3000:]
-    error, moved, loss_error, *devices = run.stdout.split()[-5:]
-    assert float(error) < SHARDING_TOL and float(moved) > 100 * SHARDING_TOL
-    assert float(loss_error) < LOSS_RTOL and devices == ["2", "2"]
+    got = json.loads(run.stdout.splitlines()[-1])
+    assert got["error"] < SHARDING_TOL and got["moved"] > 100 * SHARDING_TOL
+    assert got["loss_error"] < LOSS_RTOL and got["devices"] == [2, 2]
+    # keyvision.train(loop=cldyn.CompiledLoop()): the stage of images ran in the loop asked for
+    assert got["loops"] == ["HostLoop", "CompiledLoop"] and got["loop_error"] < SHARDING_TOL
+

@@ -224,6 +224,13 @@ def register(subparsers) -> None:
     parser.add_argument(
         "--overwrite", action="store_true", help="start afresh in an --out that holds a training"
     )
+    parser.add_argument(
+        "--loop",
+        choices=("host", "compiled"),
+        default="host",
+        help="how the stages of images run their steps: one compiled step at a time (the faster on "
+        "a CPU) or each chunk as one compiled loop (keyvision.train's loop; not part of the recipe)",
+    )
     parser.add_argument("--no-progress", dest="progress", action="store_false", help="no progress lines")
     parser.set_defaults(run=run)
 
@@ -510,6 +517,7 @@ def run(args: argparse.Namespace) -> int:
             out=out,
             resume=args.resume,
             progress_meter=cldyn.TextProgressMeter() if args.progress else cldyn.NoProgressMeter(),
+            loop=cldyn.CompiledLoop() if args.loop == "compiled" else cldyn.HostLoop(),
         )
     except BaseException as error:
         if fresh and not _checkpointed(out, args):
