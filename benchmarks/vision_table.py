@@ -51,6 +51,7 @@ import numpy as np  # noqa: E402
 ROOT = pathlib.Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "benchmarks"))
 from _common import RESULTS, machine, write  # noqa: E402
+from _table_figures import errors, plot_frames, plot_mse  # noqa: E402
 from vision import _cli, add_recipe, recipe_options  # noqa: E402
 
 # Table 1 of the paper (VPT)
@@ -68,7 +69,6 @@ VARIANTS = {
     "NODE2": (["--model", "node2"], True),
     "FC": (["--networks", "fc"], False),
 }
-FRAME_EVERY = 4  # frames between those of Figs. 4 and 13-15
 
 
 def _seconds(model: pathlib.Path) -> float:
@@ -247,11 +247,6 @@ def _train_concurrently(trainings: list, jobs: int, device: str) -> None:
             process.wait()
 
 
-def _errors(mse_per_run) -> np.ndarray:
-    """`keyvision evaluate`'s errors per run and frame, a failed prediction's (null) as infinite."""
-    return np.nan_to_num(np.asarray(mse_per_run, dtype=float), nan=np.inf)
-
-
 def _summary(evaluations: list[dict]) -> dict:
     per_run = np.concatenate([np.asarray(e["vpt_per_run"]) for e in evaluations])
     return {
@@ -263,66 +258,10 @@ def _summary(evaluations: list[dict]) -> dict:
         "runs": evaluations[0]["runs"],
         "seconds": [e["seconds"] for e in evaluations],
         "trained_on": [e.get("trained_on") for e in evaluations],
-        "mse_per_run": np.concatenate([_errors(e["mse_per_run"]) for e in evaluations]).tolist(),
+        "mse_per_run": np.concatenate([errors(e["mse_per_run"]) for e in evaluations]).tolist(),
         "threshold": evaluations[0]["threshold"],
         "dt": evaluations[0]["dt"],
     }
-
-
-def _plot_mse(path: pathlib.Path, scene: str, rows: dict) -> None:
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    figure, axes = plt.subplots(figsize=(5.5, 3.4), constrained_layout=True)
-    threshold = None
-    for name, row in rows.items():
-        mse = _errors(row["mse_per_run"])
-        t = np.arange(mse.shape[1]) * row["dt"]
-        (line,) = axes.plot(t, np.median(mse, axis=0), label=name)
-        low, high = np.percentile(mse, [25, 75], axis=0, method="nearest")
-        axes.fill_between(t, low, high, color=line.get_color(), alpha=0.2)
-        threshold = row["threshold"]
-    axes.axhline(threshold, color="k", linestyle="--", label="threshold")
-    axes.set(xlabel="time (s)", ylabel="MSE (median, quartiles)", yscale="log", title=scene)
-    axes.legend(fontsize=7)
-    figure.savefig(path, dpi=110)
-    plt.close(figure)
-
-
-def _plot_frames(path: pathlib.Path, data: pathlib.Path, models: dict, run: int = 0) -> None:
-    import equinox as eqx
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    import keyvision
-
-    validation = keyvision.Frames.load(data / "frames.npz").split()[1]
-    images = validation.images(np.float32)[run]
-    rows = {"ground truth": images}
-    for name, directory in models.items():
-        note = _stopped(pathlib.Path(directory))
-        model, _ = keyvision.load_model(directory, stage=note["evaluated_stage"] if note else None)
-        predict = eqx.filter_jit(keyvision.predict)
-        rows[name] = np.asarray(predict(model, images, validation.u[run].astype(np.float32), validation.dt))
-    shown = range(0, images.shape[0], FRAME_EVERY)
-    figure, axes = plt.subplots(
-        len(rows), len(shown), figsize=(0.8 * len(shown), 0.85 * len(rows)), squeeze=False
-    )
-    for r, (name, frames) in enumerate(rows.items()):
-        for c, t in enumerate(shown):
-            axes[r, c].imshow(np.clip(frames[t], 0, 1))
-            axes[r, c].set_xticks([])
-            axes[r, c].set_yticks([])
-            if c == 0:
-                axes[r, c].set_ylabel(name, fontsize=6, rotation=0, ha="right", va="center")
-            if r == 0:
-                axes[r, c].set_title(str(t), fontsize=6)
-    figure.savefig(path, dpi=110, bbox_inches="tight")
-    plt.close(figure)
 
 
 def main() -> None:
@@ -420,8 +359,9 @@ def main() -> None:
                 rows[name], models[name] = _summary(runs), row[0][0]
         if not rows:
             continue
-        _plot_mse(RESULTS / f"{results}_mse_{scene}.png", scene, rows)
-        _plot_frames(RESULTS / f"{results}_frames_{scene}.png", data, models)
+        plot_mse(RESULTS / f"{results}_mse_{scene}.png", scene, rows)
+        stages = {name: (m, (_stopped(m) or {}).get("evaluated_stage")) for name, m in models.items()}
+        plot_frames(RESULTS / f"{results}_frames_{scene}.png", data, stages)
         scenes[scene] = rows
         # written after every scene: a call cut short leaves the table of the scenes it finished
         _write(scenes, args, device, {**call, "seconds": round(time.perf_counter() - started, 1)})
