@@ -94,8 +94,8 @@ def main() -> None:
         row = _time(_images_job(width, 16), steps=4 if args.quick else 20, repeats=repeats)
         rows.append({"job": f"autoencoder 64x64, width {width}, batch 16", "unit": "images", **row})
         print(rows[-1], file=sys.stderr, flush=True)
-    row = _time(_joint_job(8 if args.quick else 16, 4, 10), steps=4, repeats=repeats)
     width = 8 if args.quick else 16
+    row = _time(_joint_job(width, 4, 10), steps=4, repeats=repeats)
     rows.append({"job": f"joint stage 64x64, width {width}, 4 windows of 10", "unit": "images", **row})
     print(rows[-1], file=sys.stderr, flush=True)
     row = _time(_states_job(), steps=50 if args.quick else 500, repeats=repeats)
