@@ -1,4 +1,6 @@
+import gc
 import os
+import pathlib
 import subprocess
 import sys
 
@@ -63,6 +65,36 @@ def _dtype_promotion(request):
             yield
     else:
         yield
+
+
+def _memory_maps() -> tuple[int, int] | None:
+    """`(maps, limit)`: the memory maps this process holds and the kernel's limit on them (Linux only)."""
+    try:
+        with open("/proc/self/maps", "rb") as maps:
+            count = sum(1 for _ in maps)
+        return count, int(pathlib.Path("/proc/sys/vm/max_map_count").read_text())
+    except (OSError, ValueError):
+        return None
+
+
+@pytest.fixture(autouse=True, scope="module")
+def _bounded_executables():
+    """JAX's caches cleared after a test module once the process holds half of Linux's memory maps.
+
+    Each compiled XLA CPU program holds three memory maps (its code, constants and data) for as long
+    as JAX caches it, and an `eqx.filter_jit` program stays cached after the function it compiled is
+    gone (200 such closures, dropped: 599 maps more, until `jax.clear_caches()`). Linux allows a
+    process `vm.max_map_count` maps, 65530 by default. The whole suite in one process (`pytest -p
+    no:xdist`, `benchmarks/suite_profile.py`) reached it in 17 minutes (65024 maps at the last sample)
+    and XLA died of a segmentation fault compiling the next program, in the same test of
+    `test_keyvision_control.py` in three runs (2026-12-04); with this fixture the same run passes (667
+    tests in 1136 s, the caches cleared twice, the maps never above 35000). Clearing costs a
+    recompilation of what a later module shares with an earlier one, so it waits until it is needed."""
+    yield
+    held = _memory_maps()
+    if held is not None and held[0] > held[1] // 2:
+        jax.clear_caches()
+        gc.collect()
 
 
 _STEP_FUNCTIONS = ("jit(_compiled_chunk)", "jit(_host_step)")

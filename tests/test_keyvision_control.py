@@ -116,6 +116,27 @@ def test_the_closed_loop_policy_sees_only_frames(monkeypatch):
 
 
 @pytest.mark.mujoco
+def test_a_second_swing_up_of_a_model_of_the_same_structure_compiles_nothing():
+    # JAX keeps every program it compiles (docs/index.md, long processes): a policy that compiled
+    # anew per call would hold more memory, and more of the process's memory maps, with every call
+    keyvision.swing_up(_tiny_pendulum(), "keycld/pendulum", runs=1, duration=0.04, seed=0)
+    compiled = []
+
+    def listen(event, duration, **kwargs):
+        del duration
+        if event == "/jax/core/compile/backend_compile_duration":
+            compiled.append(kwargs.get("fun_name"))
+
+    jax.monitoring.register_event_duration_secs_listener(listen)
+    try:  # a model built afresh: new objects, the same structure and shapes
+        result = keyvision.swing_up(_tiny_pendulum(), "keycld/pendulum", runs=1, duration=0.04, seed=1)
+    finally:
+        jax.monitoring.unregister_event_duration_listener(listen)
+    assert result["u"].shape == (1, 3, 1)  # it ran: 0.04 s at 50 frames per second, both ends
+    assert compiled == []
+
+
+@pytest.mark.mujoco
 def test_the_state_variant_speaks_the_models_coordinates():
     # observe="state" maps the true keypoints into the model's keypoint frame by an affine fit on
     # rendered poses; on the shipped pendulum model (whose keypoint sits partway along the rod) the
