@@ -412,13 +412,13 @@ def _to_scene_lengths(constraint, x: np.ndarray, scene: _Scene) -> tuple[np.ndar
     seen = scene.structure(np.eye(2 * count), np.zeros(2 * count)).joint_map
     at_rest = jnp.asarray(seen.keypoints(jnp.zeros(seen.num_joints)))  # the scene's keypoints, in the image
     blocks = {i: (np.eye(2 * count)[2 * i : 2 * i + 2], np.zeros(2)) for i in range(count)}
-    pending = []
+    pending, placed_by = [], {}  # placed_by: a NormConstraint's index -> the keypoint it places
     for index, leaf in enumerate(_leaves(constraint)):
         if not isinstance(leaf, Anchor | Distance | NormConstraint):
             continue
         found = float(np.median(np.asarray(jax.vmap(leaf)(jnp.asarray(x)))))
         target = float(np.asarray(leaf(at_rest))[0])
-        placed = _placed(leaf, linear) if isinstance(leaf, NormConstraint) else None
+        placed = placed_by[index] = _placed(leaf, linear) if isinstance(leaf, NormConstraint) else None
         too_far = isinstance(leaf, NormConstraint) and abs(found - target) > _LENGTH_TOL * abs(target)
         if (too_far and placed is None) or found < _COLLAPSED * abs(target):
             # |d(x)| measures in the scene's plane, the rods in the image
@@ -431,30 +431,30 @@ def _to_scene_lengths(constraint, x: np.ndarray, scene: _Scene) -> tuple[np.ndar
                 "one whose keypoints best keep the constraints)"
             )
         if not isinstance(leaf, NormConstraint) or placed is not None:
-            pending.append((leaf, target / found))
+            pending.append((index, leaf, target / found))
 
     def rows(k):  # keypoint k's two coordinates picked from x
         return np.eye(2 * count)[2 * k : 2 * k + 2]
 
-    def moves(leaf) -> int:  # the keypoint a constraint moves
+    def moves(index, leaf) -> int:  # the keypoint a constraint moves
         if isinstance(leaf, Anchor):
             return leaf.keypoint
-        return leaf.second if isinstance(leaf, Distance) else _placed(leaf, linear)
+        return leaf.second if isinstance(leaf, Distance) else placed_by[index]
 
-    def after(leaf) -> set:  # the keypoints whose moved places it needs first
+    def after(index, leaf) -> set:  # the keypoints whose moved places it needs first
         if isinstance(leaf, Anchor):
             return set()
         if isinstance(leaf, Distance):
             return {leaf.first}
         anchor = np.abs(np.asarray(leaf.difference.matrix)).reshape(2, count, 2).sum(axis=(0, 2)) > 0
-        return set(np.flatnonzero(anchor)) - {moves(leaf)}
+        return set(np.flatnonzero(anchor)) - {moves(index, leaf)}
 
     while pending:  # a rod's child after its parent
-        waiting = {moves(leaf) for leaf, _ in pending}
-        ready = [(leaf, r) for leaf, r in pending if not after(leaf) & waiting]
+        waiting = {moves(index, leaf) for index, leaf, _ in pending}
+        ready = [item for item in pending if not after(*item[:2]) & waiting]
         if not ready:
             raise ValueError("identify: the constraints' rods form a loop")
-        for leaf, ratio in ready:
+        for index, leaf, ratio in ready:
             if isinstance(leaf, Anchor):
                 k, point = leaf.keypoint, np.asarray(leaf.point, dtype=float)
                 blocks[k] = (ratio * rows(k), (1 - ratio) * point)
@@ -462,7 +462,7 @@ def _to_scene_lengths(constraint, x: np.ndarray, scene: _Scene) -> tuple[np.ndar
                 (a, b), i, j = blocks[leaf.first], leaf.first, leaf.second
                 blocks[j] = (a + ratio * (rows(j) - rows(i)), b)
             else:  # d(x) = L (x_k - o(x)), L the map to the plane: x'_k = o(x') + ratio L^-1 d(x)
-                k, matrix = moves(leaf), np.asarray(leaf.difference.matrix, dtype=float)
+                k, matrix = placed_by[index], np.asarray(leaf.difference.matrix, dtype=float)
                 const, inverse = np.asarray(leaf.difference.const, dtype=float), np.linalg.inv(linear)
                 others = matrix - linear @ rows(k)  # o(x) = -L^-1 (others x + const): zero on x_k
                 moved = np.concatenate([blocks[i][0] for i in range(count)])
@@ -471,6 +471,7 @@ def _to_scene_lengths(constraint, x: np.ndarray, scene: _Scene) -> tuple[np.ndar
                     inverse @ (ratio * matrix - others @ moved),
                     inverse @ ((ratio - 1) * const - others @ shift),
                 )
-        pending = [(leaf, r) for leaf, r in pending if all(leaf is not done for done, _ in ready)]
+        done = {index for index, _, _ in ready}
+        pending = [item for item in pending if item[0] not in done]
     matrix = np.concatenate([blocks[i][0] for i in range(count)])
     return matrix, np.concatenate([blocks[i][1] for i in range(count)])
