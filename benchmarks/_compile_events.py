@@ -1,5 +1,6 @@
 """A pytest plugin for `benchmarks/suite_profile.py`: JAX's trace, lowering and compile events of
-every test, written as one JSON line per test to the file named by `$SUITE_PROFILE_OUT`."""
+every test and the memory maps the process holds after it (Linux), written as one JSON line per test
+to the file named by `$SUITE_PROFILE_OUT`."""
 
 import collections
 import json
@@ -26,6 +27,14 @@ def _listen(event: str, duration: float, **kwargs) -> None:
 jax.monitoring.register_event_duration_secs_listener(_listen)
 
 
+def _memory_maps() -> int | None:
+    try:
+        with open("/proc/self/maps", "rb") as maps:
+            return sum(1 for _ in maps)
+    except OSError:
+        return None
+
+
 @pytest.hookimpl(hookwrapper=True)
 def pytest_runtest_protocol(item, nextitem):
     _seen.clear()
@@ -46,6 +55,7 @@ def pytest_runtest_protocol(item, nextitem):
         **{f"{kind}_s": totals[kind] for kind in ("compile", "trace", "lower")},
         "compilations": counts["compile"],
         "compiled": dict(sorted(compiled.items(), key=lambda kv: -kv[1][0])),
+        "maps": _memory_maps(),  # each compiled program JAX keeps holds three (tests/conftest.py)
     }
     with open(os.environ["SUITE_PROFILE_OUT"], "a") as out:
         out.write(json.dumps(record) + "\n")

@@ -13,7 +13,7 @@ second or more) and suite_profile.md (the largest modules, tests and functions);
 summary. Pass test paths or pytest options after `--` to profile part of the suite (the record
 names them).
 
-    python benchmarks/suite_profile.py                      # the whole suite, about 15 min on 2 cores
+    python benchmarks/suite_profile.py                      # the whole suite, about 19 min on 2 cores
     python benchmarks/suite_profile.py -- tests/test_identify.py
 """
 
@@ -63,6 +63,7 @@ def report(
             functions[name]["compile_s"] += seconds
             functions[name]["compilations"] += count
     totals = {key: sum(t[key] for t in tests) for key in ("seconds", "compile_s", "trace_s", "lower_s")}
+    maps = [t["maps"] for t in tests if t.get("maps") is not None]
     result = {
         "benchmark": "suite_profile",
         "machine": where,
@@ -71,6 +72,9 @@ def report(
         "wall_s": wall,
         "tests": len(tests),
         "totals": totals,
+        # the most memory maps the process held after a test, and Linux's limit: past it XLA dies of a
+        # segmentation fault (tests/conftest.py clears JAX's caches after a module above half of it)
+        "memory_maps": {"most": max(maps, default=None), "limit": _map_limit()},
         "modules": {m: dict(c) for m, c in sorted(modules.items(), key=lambda kv: -kv[1]["seconds"])},
         "functions": {f: dict(c) for f, c in sorted(functions.items(), key=lambda kv: -kv[1]["compile_s"])},
         # the tests of a second or more, each with its five largest compilations (the totals above
@@ -91,6 +95,15 @@ def report(
         f"({share(totals['compile_s'])}), tracing {totals['trace_s']:.0f} s ({share(totals['trace_s'])}, "
         f"nested traces count twice), lowering {totals['lower_s']:.0f} s ({share(totals['lower_s'])}). "
         "Written by `benchmarks/suite_profile.py`.",
+    ]
+    if result["memory_maps"]["most"] is not None:
+        lines += [
+            "",
+            f"Memory maps: at most {result['memory_maps']['most']} after a test, of Linux's "
+            f"{result['memory_maps']['limit']} (`vm.max_map_count`; each compiled program JAX keeps holds "
+            "three, and `tests/conftest.py` clears JAX's caches after a module above half the limit).",
+        ]
+    lines += [
         "",
         "| module | seconds | compile | trace | lower | compilations |",
         "| --- | --- | --- | --- | --- | --- |",
@@ -107,9 +120,17 @@ def report(
     lines += ["", "| compiled function | compile seconds | compilations |", "| --- | --- | --- |"]
     for name, c in list(result["functions"].items())[:top]:
         lines.append(f"| `{name}` | {c['compile_s']:.1f} | {c['compilations']} |")
-    summary = {key: result[key] for key in ("pytest_args", "exit_status", "wall_s", "tests", "totals")}
+    keys = ("pytest_args", "exit_status", "wall_s", "tests", "totals", "memory_maps")
+    summary = {key: result[key] for key in keys}
     write("suite_profile", result, "\n".join(lines) + "\n")
     print(json.dumps(summary, indent=2), file=sys.stderr)
+
+
+def _map_limit() -> int | None:
+    try:
+        return int(pathlib.Path("/proc/sys/vm/max_map_count").read_text())
+    except (OSError, ValueError):
+        return None
 
 
 if __name__ == "__main__":
