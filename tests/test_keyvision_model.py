@@ -714,4 +714,3 @@ def test_training_sharded_over_two_devices_or_run_in_a_compiled_loop_equals_one(
     assert got["loss_error"] < LOSS_RTOL and got["devices"] == [2, 2]
     # keyvision.train(loop=cldyn.CompiledLoop()): the stage of images ran in the loop asked for
     assert got["loops"] == ["HostLoop", "CompiledLoop"] and got["loop_error"] < SHARDING_TOL
-
