@@ -159,3 +159,91 @@ def test_import_time_is_light():
     code = f"import cldyn, sys; print(*[int(m in sys.modules) for m in {heavy!r}])"
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
     assert out.stdout.split() == ["0"] * len(heavy), dict(zip(heavy, out.stdout.split()))
+
+
+# A signature written out in the prose pages, `name(a, b, *, c=1)`: a bare `*` tells it from a call.
+SIGNATURE = re.compile(r"((?:cldyn\.mujoco\.|cldyn\.|keyvision\.)?[A-Za-z_]\w*)\(")
+SIGNATURE_PACKAGES = ("cldyn", "cldyn.mujoco", "keyvision")  # where a name without a package is looked up
+
+
+def _written_signatures(text: str):
+    """`(name, parameters, line)` of every signature written out in a page. Table rows are left out:
+    they abbreviate (`keycld_model(k, l, constraint, *, key)`, the paper's symbols)."""
+    for match in SIGNATURE.finditer(text):
+        start = text.rfind("\n", 0, match.start()) + 1
+        if text[start : match.start()].lstrip().startswith("|"):
+            continue
+        end, depth = match.end(), 1
+        while end < len(text) and depth:
+            depth += {"(": 1, ")": -1}.get(text[end], 0)
+            end += 1
+        parameters = " ".join(text[match.end() : end - 1].split())
+        if re.search(r"(^|,)\s*\*\s*(,|$)", parameters):
+            yield match.group(1), parameters, text.count("\n", 0, match.start()) + 1
+
+
+def _resolve(name: str):
+    packages = [name.rsplit(".", 1)[0]] if "." in name else SIGNATURE_PACKAGES
+    for package in packages:
+        module = _import(package)
+        value = getattr(module, name.rsplit(".", 1)[-1], None) if module is not None else None
+        if callable(value):
+            return value
+    return None
+
+
+def _same_default(written, actual) -> bool:
+    try:
+        same = written == actual
+        return bool(same) if isinstance(same, bool) else False
+    except Exception:
+        return False
+
+
+def test_signatures_written_in_the_pages_match_the_code():
+    import diffrax
+    import equinox as eqx
+    import jax
+    import jax.numpy as jnp
+    import numpy as np
+
+    import cldyn
+    import keyvision
+
+    if _import("cldyn.mujoco") is None:
+        pytest.skip("cldyn.mujoco needs the mujoco extra")
+    # a default is written as code: `cldyn.Runs(32)`, or a cldyn name alone, `solver=RK4()`
+    namespace = {name: getattr(cldyn, name) for name in public_names("cldyn")}
+    namespace.update(cldyn=cldyn, keyvision=keyvision, jax=jax, jnp=jnp, np=np, diffrax=diffrax, eqx=eqx)
+    problems, found = [], 0
+    for page in sorted(DOCS.rglob("*.md")) + [ROOT / "README.md"]:
+        for name, parameters, line in _written_signatures(page.read_text()):
+            where, found = f"{page.relative_to(ROOT)}:{line} {name}", found + 1
+            value = _resolve(name)
+            if value is None:
+                problems.append(f"{where}: no public callable of that name")
+                continue
+            written = ast.parse(f"def f({parameters}): pass").body[0].args
+            actual = [p for p in inspect.signature(value).parameters.values() if p.name != "self"]
+            positional = written.posonlyargs + written.args
+            names = [a.arg for a in positional] + ["*"] + [a.arg for a in written.kwonlyargs]
+            keyword = (inspect.Parameter.KEYWORD_ONLY, inspect.Parameter.VAR_KEYWORD)
+            real = [p.name for p in actual if p.kind not in keyword] + ["*"]
+            real += [p.name for p in actual if p.kind in keyword]
+            if names != real:
+                problems.append(f"{where}: written ({', '.join(names)}), the code has ({', '.join(real)})")
+                continue
+            defaults = dict(zip([a.arg for a in positional][len(positional) - len(written.defaults) :],
+                                written.defaults))
+            keyword_defaults = zip(written.kwonlyargs, written.kw_defaults)
+            defaults.update({a.arg: d for a, d in keyword_defaults if d is not None})
+            for parameter in actual:
+                text = ast.unparse(defaults[parameter.name]) if parameter.name in defaults else None
+                if (text is None) != (parameter.default is inspect.Parameter.empty):
+                    problems.append(f"{where}: `{parameter.name}` written with default {text or 'none'}, "
+                                    f"the code's: {'none' if text else repr(parameter.default)}")
+                elif text is not None and not _same_default(eval(text, namespace), parameter.default):
+                    problems.append(f"{where}: `{parameter.name}={text}`, the code's default is "
+                                    f"{parameter.default!r}")
+    assert found >= 8, f"only {found} written signatures found: has the pattern stopped matching?"
+    assert problems == [], "\n".join(problems)
