@@ -136,16 +136,22 @@ def _controls(model, protocol: RenderProtocol, rng: np.random.Generator) -> np.n
 _WORKER: dict[str, Any] = {}
 
 
-def _start_worker(setup: dict) -> None:
-    """Runs in each worker process: choose the GL backend before MuJoCo is imported, then compile the
-    scene and open an offscreen renderer (this process's own GL context)."""
+def _open(setup: dict) -> dict[str, Any]:
+    """Choose the GL backend before MuJoCo is imported (where it is not yet), then compile the scene
+    and open an offscreen renderer: a GL context of this process."""
     os.environ.setdefault("MUJOCO_GL", setup["gl"])
     mujoco = _mujoco()
     scene = _scene(setup["xml"], setup["protocol"], setup["camera"], setup["keypoints"])
     renderer = _Camera(mujoco, scene, setup["protocol"])
+    return dict(mujoco=mujoco, scene=scene, renderer=renderer, data=mujoco.MjData(scene.model))
+
+
+def _start_worker(setup: dict) -> None:
+    """Runs in each worker process: its scene and renderer."""
+    _WORKER.update(_open(setup))
     # Close the GL context before the interpreter tears the module down (else its finaliser fails).
+    renderer = _WORKER["renderer"]
     multiprocessing.util.Finalize(renderer, renderer.close, exitpriority=10)
-    _WORKER.update(mujoco=mujoco, scene=scene, renderer=renderer, data=mujoco.MjData(scene.model))
 
 
 def _simulate_and_render(scene: _Scene, renderer, data, mujoco, qpos0, qvel0, ctrl, protocol) -> dict:
@@ -173,9 +179,10 @@ def _simulate_and_render(scene: _Scene, renderer, data, mujoco, qpos0, qvel0, ct
     return out
 
 
-def _render_chunk(task: tuple) -> tuple[np.ndarray, dict]:
+def _render_chunk(task: tuple, state: dict[str, Any] | None = None) -> tuple[np.ndarray, dict]:
+    """Render one chunk of runs with `state` (`_open`'s), a worker's own by default."""
     runs, qpos0, qvel0, ctrl, protocol = task
-    state = _WORKER
+    state = _WORKER if state is None else state
     outs = [
         _simulate_and_render(
             state["scene"],
@@ -253,7 +260,9 @@ def render(
       moving joint anchors and the far ends of the terminal bodies and of every turning body that
       no other body is hinged to (KeyCLD's keypoints in KeyCLD's scenes).
     - `cache`: `True` for `keyvision.cache_directory()`, a directory, or `False` for none.
-    - `workers`: the number of worker processes (the number of CPUs by default).
+    - `workers`: the number of worker processes (the number of CPUs by default). Workers are
+      started with 'spawn' and import the calling script again, whose code must then sit under
+      `if __name__ == "__main__":`; `workers=1` renders in the calling process instead.
     - `progress_meter`: a `cldyn.AbstractProgressMeter`, e.g. `cldyn.TextProgressMeter()`.
 
     **Returns:** a `keyvision.Frames`.
@@ -375,22 +384,35 @@ def _render(setup: dict, seed: int, workers: int | None, progress_meter) -> Fram
     }
     state = progress_meter.start(runs, desc="render", unit="run")
     done = 0
+
+    def collect(indices, result) -> None:
+        nonlocal state, done
+        for name, value in result.items():
+            out[name][indices] = value
+        done += len(indices)
+        state = progress_meter.update(state, done)
+
     context = multiprocessing.get_context("spawn")
     try:
-        with concurrent.futures.ProcessPoolExecutor(
-            workers, mp_context=context, initializer=_start_worker, initargs=(setup,)
-        ) as pool:
-            for future in concurrent.futures.as_completed([pool.submit(_render_chunk, t) for t in tasks]):
-                indices, result = future.result()
-                for name, value in result.items():
-                    out[name][indices] = value
-                done += len(indices)
-                state = progress_meter.update(state, done)
+        if workers == 1:  # in this process: no process to start, and no script imported again
+            own = _open(setup)
+            try:
+                for task in tasks:
+                    collect(*_render_chunk(task, own))
+            finally:
+                own["renderer"].close()
+        else:
+            with concurrent.futures.ProcessPoolExecutor(
+                workers, mp_context=context, initializer=_start_worker, initargs=(setup,)
+            ) as pool:
+                for future in concurrent.futures.as_completed([pool.submit(_render_chunk, t) for t in tasks]):
+                    collect(*future.result())
     except concurrent.futures.process.BrokenProcessPool as error:
         raise RuntimeError(
             "keyvision.render: a rendering worker process died (its error is printed above). Workers are "
             "started with 'spawn' and import the calling script again: guard a script's code with "
-            "`if __name__ == '__main__':`. Check also that MuJoCo can render headless (MUJOCO_GL=egl)."
+            "`if __name__ == '__main__':`, or pass workers=1 to render in the calling process. Check also "
+            "that MuJoCo can render headless (MUJOCO_GL=egl)."
         ) from error
     finally:
         progress_meter.close(state)

@@ -230,6 +230,18 @@ def test_rendering_does_not_depend_on_the_number_of_workers(marker_frames):
     np.testing.assert_array_equal(again.u, marker_frames.u)
 
 
+def test_one_worker_renders_in_the_calling_process(monkeypatch):
+    # so a script without `if __name__ == "__main__":` renders with workers=1 (a spawned worker
+    # imports the script again, which renders again); no process pool may be started
+    def no_pool(*args, **kwargs):
+        raise AssertionError("keyvision.render started a process pool for workers=1")
+
+    monkeypatch.setattr(render_module.concurrent.futures, "ProcessPoolExecutor", no_pool)
+    protocol = keyvision.RenderProtocol(runs=2, frames=3, validation_runs=1)
+    frames = keyvision.render("keycld/pendulum", protocol=protocol, cache=False, workers=1)
+    assert frames.frames.shape == (2, 3, 64, 64, 3) and frames.frames.std() > 0
+
+
 def test_render_poses_draws_the_poses_with_their_potential_energy(marker_frames):
     """The frames and keypoints of `render` for the same joint positions, and MuJoCo's potential
     energy in closed form: V = g (m_c h + m_a (h + L cos q)), the carriage at the pivot's height."""

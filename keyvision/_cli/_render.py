@@ -55,7 +55,9 @@ def register(subparsers) -> None:
         help="sites of the scene whose positions are the keypoints, in order (default: the moving joint "
         "anchors and the far ends of the last bodies and of turning bodies that carry no hinge)",
     )
-    parser.add_argument("--workers", type=count, default=None, help="worker processes (default: CPUs)")
+    parser.add_argument(
+        "--workers", type=count, default=None, help="worker processes (default: CPUs; 1: in this process)"
+    )
     parser.add_argument(
         "--cache",
         default=None,
