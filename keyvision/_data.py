@@ -6,7 +6,6 @@ import hashlib
 import json
 import os
 import pathlib
-import zipfile
 from collections.abc import Mapping
 from typing import Any
 
@@ -16,6 +15,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float, Int, Shaped, UInt8
 
+from cldyn._data import _read_npz as read_npz
 from cldyn._misc import atomic_save
 
 SCHEMA = "keyvision.Frames/1"
@@ -235,11 +235,7 @@ class Frames:
         path = pathlib.Path(path)
         if not path.is_file():
             raise FileNotFoundError(f"{path}: no such frames file")
-        try:
-            with np.load(path, allow_pickle=False) as npz:
-                contents = {name: npz[name] for name in npz.files}
-        except (OSError, ValueError, EOFError, zipfile.BadZipFile, KeyError, RuntimeError) as error:
-            raise ValueError(f"{path}: not a readable .npz file ({type(error).__name__}: {error})") from error
+        contents = read_npz(path)  # cldyn's reader: names the file, never advises loading pickles
         if "metadata" not in contents:
             raise ValueError(f"{path}: not a keyvision frames file (no metadata entry)")
         try:

@@ -23,6 +23,7 @@ import optax
 from jaxtyping import PRNGKeyArray
 
 import cldyn
+from cldyn._data import _read_npz as read_npz
 from cldyn._fit import fit_files
 from cldyn._misc import atomic_save, atomic_write, check_positive
 
@@ -267,13 +268,12 @@ def _stage_keypoints(
     started = path is not None and fit_files(out, stage)["checkpoint"].exists()
     if resume and started and path.is_file():
         try:
-            with np.load(path, allow_pickle=False) as stored:
-                schema = str(stored["schema"])
-                x = np.asarray(stored["x"])
-                x_validation = np.asarray(stored["validation"]) if "validation" in stored.files else None
-        except (OSError, ValueError, KeyError, EOFError) as error:
+            stored = read_npz(path)
+            schema, x, x_validation = str(stored["schema"]), stored["x"], stored.get("validation")
+        except (ValueError, KeyError) as error:
+            problem = str(error).removeprefix(f"{path}: ")
             raise cldyn.CheckpointError(
-                f"{path}: unreadable ({type(error).__name__}: {error}); it holds the keypoints that the "
+                f"{path}: unreadable ({type(error).__name__}: {problem}); it holds the keypoints that the "
                 f"checkpoint of stage {stage!r} was fitted to: delete it and checkpoint-{stage}.eqx to "
                 "run that stage afresh"
             ) from None

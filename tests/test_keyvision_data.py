@@ -67,6 +67,21 @@ def test_corrupted_bytes_are_refused_naming_the_file(tmp_path):
         keyvision.Frames.load(path)
 
 
+def test_files_that_are_no_archive_or_hold_pickles_are_refused_without_advice_to_load_pickles(tmp_path):
+    # numpy reads a file that is no zip archive as a pickle and suggests allow_pickle=True, which
+    # would run whatever code the file holds; the error names the file and never says that
+    cases = {"empty.npz": b"", "random.npz": np.random.default_rng(0).bytes(256), "text.npz": b"frames\n"}
+    for name, content in cases.items():
+        (tmp_path / name).write_bytes(content)
+        with pytest.raises(ValueError, match=f"{name}: not an .npz file") as error:
+            keyvision.Frames.load(tmp_path / name)
+        assert "pickle" not in str(error.value)
+    np.savez(tmp_path / "objects.npz", metadata=np.array("{}"), frames=np.array([{"a": 1}], dtype=object))
+    with pytest.raises(ValueError, match="objects.npz: entry 'frames' holds pickled Python objects") as error:
+        keyvision.Frames.load(tmp_path / "objects.npz")
+    assert "allow_pickle" not in str(error.value)
+
+
 def test_foreign_and_incomplete_files_are_refused(tmp_path):
     other = tmp_path / "other.npz"
     np.savez(other, frames=np.zeros((1, 1, 2, 2, 3), np.uint8))
