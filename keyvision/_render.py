@@ -18,6 +18,7 @@ import re
 import time
 import xml.etree.ElementTree as ET
 from collections.abc import Sequence
+from concurrent.futures.process import BrokenProcessPool
 from typing import Any
 
 import numpy as np
@@ -137,17 +138,32 @@ _WORKER: dict[str, Any] = {}
 
 
 def _open(setup: dict) -> dict[str, Any]:
-    """Choose the GL backend before MuJoCo is imported (where it is not yet), then compile the scene
-    and open an offscreen renderer: a GL context of this process."""
-    os.environ.setdefault("MUJOCO_GL", setup["gl"])
+    """Compile the scene and open an offscreen renderer: a GL context of this process."""
     mujoco = _mujoco()
     scene = _scene(setup["xml"], setup["protocol"], setup["camera"], setup["keypoints"])
     renderer = _Camera(mujoco, scene, setup["protocol"])
     return dict(mujoco=mujoco, scene=scene, renderer=renderer, data=mujoco.MjData(scene.model))
 
 
+def _open_here(setup: dict) -> dict[str, Any]:
+    """`_open` in the calling process, whose MuJoCo may have chosen a GL backend that cannot render
+    offscreen (it chooses when first imported)."""
+    try:
+        return _open(setup)
+    except Exception as error:
+        backend = os.environ.get("MUJOCO_GL", "unset")
+        raise RuntimeError(
+            f"keyvision.render(workers=1): MuJoCo cannot render in this process ({type(error).__name__}: "
+            f"{error}; MUJOCO_GL is {backend}, and MuJoCo chose its backend when first imported). Set "
+            "MUJOCO_GL=egl before anything imports mujoco, or render with workers > 1 (processes of their "
+            "own, with EGL)."
+        ) from error
+
+
 def _start_worker(setup: dict) -> None:
-    """Runs in each worker process: its scene and renderer."""
+    """Runs in each worker process: choose the GL backend before MuJoCo is imported, then open the
+    worker's scene and renderer."""
+    os.environ.setdefault("MUJOCO_GL", setup["gl"])
     _WORKER.update(_open(setup))
     # Close the GL context before the interpreter tears the module down (else its finaliser fails).
     renderer = _WORKER["renderer"]
@@ -395,7 +411,7 @@ def _render(setup: dict, seed: int, workers: int | None, progress_meter) -> Fram
     context = multiprocessing.get_context("spawn")
     try:
         if workers == 1:  # in this process: no process to start, and no script imported again
-            own = _open(setup)
+            own = _open_here(setup)
             try:
                 for task in tasks:
                     collect(*_render_chunk(task, own))
@@ -407,7 +423,7 @@ def _render(setup: dict, seed: int, workers: int | None, progress_meter) -> Fram
             ) as pool:
                 for future in concurrent.futures.as_completed([pool.submit(_render_chunk, t) for t in tasks]):
                     collect(*future.result())
-    except concurrent.futures.process.BrokenProcessPool as error:
+    except BrokenProcessPool as error:
         raise RuntimeError(
             "keyvision.render: a rendering worker process died (its error is printed above). Workers are "
             "started with 'spawn' and import the calling script again: guard a script's code with "

@@ -3,6 +3,8 @@
 
 import dataclasses
 import math
+import os
+import sys
 from collections.abc import Sequence
 from typing import TYPE_CHECKING, Any
 
@@ -19,6 +21,11 @@ _JOINT_TYPES = {0: "free", 1: "ball", 2: "slide", 3: "hinge"}
 
 
 def _mujoco():
+    """MuJoCo, to render offscreen: it chooses its OpenGL backend from `MUJOCO_GL` when it is first
+    imported, and on Linux keyvision asks for EGL (headless, as its rendering workers do) unless the
+    environment names a backend; a MuJoCo imported earlier keeps the backend it chose."""
+    if "mujoco" not in sys.modules and sys.platform.startswith("linux"):
+        os.environ.setdefault("MUJOCO_GL", "egl")
     return optional_import("mujoco", purpose="keyvision.render")
 
 

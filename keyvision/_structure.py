@@ -93,9 +93,11 @@ def scene_bridge(frames: Frames, caller: str) -> tuple:
 
 
 def _site_names(xml: str) -> list[str]:
-    import mujoco
-
     from cldyn.mujoco._scenes import load_model
+
+    from ._scene import _mujoco
+
+    mujoco = _mujoco()
 
     model = load_model(xml)[0]
     return [mujoco.mj_id2name(model, mujoco.mjtObj.mjOBJ_SITE, i) or "" for i in range(model.nsite)]

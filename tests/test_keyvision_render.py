@@ -2,6 +2,8 @@
 
 import dataclasses
 import os
+import subprocess
+import sys
 
 import equinox as eqx
 import jax
@@ -240,6 +242,32 @@ def test_one_worker_renders_in_the_calling_process(monkeypatch):
     protocol = keyvision.RenderProtocol(runs=2, frames=3, validation_runs=1)
     frames = keyvision.render("keycld/pendulum", protocol=protocol, cache=False, workers=1)
     assert frames.frames.shape == (2, 3, 64, 64, 3) and frames.frames.std() > 0
+
+
+def test_rendering_in_the_calling_process_needs_no_gl_setting():
+    # MuJoCo picks its GL backend when first imported; keyvision asks for EGL (headless) unless the
+    # environment names one, so rendering in this process works where MUJOCO_GL was never set
+    code = (
+        "import numpy as np, keyvision\n"
+        "protocol = keyvision.RenderProtocol(runs=1, frames=2, validation_runs=0)\n"
+        "frames = keyvision.render('keycld/pendulum', protocol=protocol, cache=False, workers=1)\n"
+        "poses = keyvision.render_poses('keycld/pendulum', np.zeros((1, 1)))\n"
+        "print(frames.frames.std() > 0, poses['frames'].std() > 0)\n"
+    )
+    env = {k: v for k, v in os.environ.items() if k != "MUJOCO_GL"}
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env, timeout=300)
+    assert out.returncode == 0, out.stderr[-3000:]
+    assert out.stdout.split() == ["True", "True"]
+
+
+def test_a_process_that_cannot_render_is_told_how_to(monkeypatch):
+    def no_context(setup):
+        raise RuntimeError("no OpenGL context")
+
+    monkeypatch.setattr(render_module, "_open", no_context)
+    protocol = keyvision.RenderProtocol(runs=1, frames=2, validation_runs=0)
+    with pytest.raises(RuntimeError, match=r"workers=1\): MuJoCo cannot render in this process .*MUJOCO_GL"):
+        keyvision.render("keycld/pendulum", protocol=protocol, cache=False, workers=1)
 
 
 def test_render_poses_draws_the_poses_with_their_potential_energy(marker_frames):
