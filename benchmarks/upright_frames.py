@@ -24,10 +24,12 @@ NEAR = 0.4  # rad: a frame is near upright when every hinge is within this of it
 
 
 def _near_share(frames) -> float:
+    import cldyn
+
     info = frames.info
     hinges = [i for i, kind in zip(info["joint_qpos_index"], info["joint_types"]) if kind == "hinge"]
     q = frames.extras["qpos"][..., hinges]
-    return float(np.mean(np.all(np.abs(np.angle(np.exp(1j * q))) < NEAR, axis=-1)))
+    return float(np.mean(np.all(np.abs(np.asarray(cldyn.wrap_angle(q))) < NEAR, axis=-1)))
 
 
 def main() -> None:
