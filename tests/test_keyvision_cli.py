@@ -200,15 +200,22 @@ def test_render_train_evaluate(tmp_path, capsys):
     spec = json.loads((model / "keyvision.json").read_text())
     assert spec["keypoints"] == 1 and spec["dynamics"]["constraint"] == "pendulum"
     assert (model / "model.eqx").is_file()
+    # the frames' path, relative to the model's directory: it names no machine's directories
+    assert not os.path.isabs(spec["data"]["file"])
+    assert (model / spec["data"]["file"]).resolve() == (data / "frames.npz").resolve()
     status, _, err = _run(capsys, train)
     assert status == 2 and "--resume" in _error_line(err, "train")
     status, _, err = _run(capsys, train + ["--resume", "--lr", 0.01])
     line = _error_line(err, "train")  # names the option that differs, with both values, and no other
     assert status == 2 and "options differ" in line and "(schedule.learning_rate 0.001 -> 0.01)" in line
+    # a training recorded with an absolute path to its frames (as before paths were relative) resumes
+    spec["data"]["file"] = str((data / "frames.npz").resolve())
+    (model / "keyvision.json").write_text(json.dumps(spec))
     # more rounds extend a finished training (here rounds without steps: nothing more to run) ...
     status, out, err = _run(capsys, train + ["--resume", "--rounds", 3])
     assert status == 0, err
-    assert json.loads((model / "keyvision.json").read_text())["schedule"]["rounds"] == 3
+    spec = json.loads((model / "keyvision.json").read_text())
+    assert spec["schedule"]["rounds"] == 3 and not os.path.isabs(spec["data"]["file"])
     # ... and fewer would drop finished rounds: refused
     status, _, err = _run(capsys, train + ["--resume", "--rounds", 2])
     assert status == 2 and "(schedule.rounds 3 -> 2)" in _error_line(err, "train")
@@ -225,6 +232,7 @@ def test_render_train_evaluate(tmp_path, capsys):
     assert not (shared / "history-autoencoder.json").exists()
     spec = json.loads((shared / "keyvision.json").read_text())
     assert spec["schedule"]["autoencoder_steps"] == 0 and spec["networks_from"]["autoencoder_seconds"] > 0
+    assert (shared / spec["networks_from"]["directory"]).resolve() == model.resolve()
     autoencoder, _ = keyvision.load_model(model, stage="autoencoder")
     trained_nc, _ = keyvision.load_model(shared)
     for part in ("estimator", "renderer"):  # no stage here trained the networks

@@ -1,7 +1,8 @@
 """`keyvision train`: a KeyCLD model learnt from rendered frames, in `keyvision.train`'s stages.
 
 The output directory holds `keyvision.json` (the model's sizes, the dynamics' cldyn spec, the data,
-the seed and the schedule), `model.eqx` (the trained parameters: `keyvision evaluate --model` reads
+the seed and the schedule; the frames' file, and with `--networks-from` that training's directory,
+recorded relative to the output directory), `model.eqx` (the trained parameters: `keyvision evaluate --model` reads
 both), and `keyvision.train`'s own files (`train.json`, and per stage `checkpoint-<stage>.eqx`,
 `history-<stage>.json`, `model-<stage>.eqx`, and for the dynamics stages `keypoints-<stage>.npz`, the
 keypoints they fit; with `--candidates`, `candidates.json`, the candidates' scores and the one chosen)
@@ -10,6 +11,7 @@ from which `--resume` continues.
 
 import argparse
 import json
+import os
 import shlex
 import sys
 
@@ -340,8 +342,18 @@ def _networks_source(directory: str, spec: dict, frames) -> dict:
             seconds = (seconds or 0.0) + float(records[-1]["seconds"])
     return {
         "model": model,
-        "record": {"directory": str(pathlib.Path(directory).resolve()), "autoencoder_seconds": seconds},
+        "record": {"directory": str(pathlib.Path(directory)), "autoencoder_seconds": seconds},
     }
+
+
+def _relative(path, out) -> str:
+    """`path` as `keyvision.json` records it: relative to the model's directory `out`, so that the
+    record holds wherever the two move together and names no machine's directories (absolute where no
+    relative path exists, as across drives)."""
+    try:
+        return os.path.relpath(os.path.abspath(path), os.path.abspath(out))
+    except ValueError:
+        return os.path.abspath(path)
 
 
 def _more_rounds(previous, schedule: dict) -> bool:
@@ -458,7 +470,7 @@ def run(args: argparse.Namespace) -> int:
     spec.update(
         seed=args.seed,
         data={
-            "file": str(data_path.resolve()),
+            "file": _relative(data_path, out),
             "scene": frames.info.get("scene"),
             "cache_key": frames.info.get("cache_key"),
             # the camera's samples per pixel side (keyvision.RenderProtocol): swing_up's default
@@ -467,7 +479,8 @@ def run(args: argparse.Namespace) -> int:
         schedule=schedule.describe(),
     )
     if source is not None:
-        spec["networks_from"] = source["record"]
+        record = source["record"]
+        spec["networks_from"] = {**record, "directory": _relative(record["directory"], out)}
     spec_path = out / SPEC_NAME
     if args.resume and spec_path.is_file():
         try:
@@ -476,6 +489,11 @@ def run(args: argparse.Namespace) -> int:
             raise CommandError(
                 f"{spec_path}: unreadable ({error}); cannot check what --resume continues"
             ) from None
+        # paths recorded absolute by earlier versions compare as the relative ones recorded now
+        for entry, name in (("data", "file"), ("networks_from", "directory")):
+            recorded = previous.get(entry) if isinstance(previous.get(entry), dict) else {}
+            if isinstance(recorded.get(name), str) and os.path.isabs(recorded[name]):
+                previous[entry] = {**recorded, name: _relative(recorded[name], out)}
         if isinstance(previous.get("schedule"), dict):  # a field added since: it held its default then
             defaults = for_dynamics(keyvision.Schedule(), model.dynamics).describe()
             previous["schedule"] = {**defaults, **previous["schedule"]}
