@@ -1,9 +1,9 @@
 """`keyvision train`: a KeyCLD model learnt from rendered frames, in `keyvision.train`'s stages.
 
-The output directory holds `keyvision.json` (the model's sizes, the dynamics' cldyn spec, the data,
-the seed and the schedule; the frames' file, and with `--networks-from` that training's directory,
-recorded relative to the output directory), `model.eqx` (the trained parameters: `keyvision evaluate --model` reads
-both), and `keyvision.train`'s own files (`train.json`, and per stage `checkpoint-<stage>.eqx`,
+The output directory holds `keyvision.json` (the model's sizes, the dynamics' cldyn spec, the data, the
+seed and the schedule; the frames' file, and with `--networks-from` that training's directory, recorded
+relative to the output directory), `model.eqx` (the trained parameters: `keyvision evaluate --model`
+reads both), and `keyvision.train`'s own files (`train.json`, and per stage `checkpoint-<stage>.eqx`,
 `history-<stage>.json`, `model-<stage>.eqx`, and for the dynamics stages `keypoints-<stage>.npz`, the
 keypoints they fit; with `--candidates`, `candidates.json`, the candidates' scores and the one chosen)
 from which `--resume` continues.
