@@ -351,7 +351,7 @@ def _relative(path, out) -> str:
     record holds wherever the two move together and names no machine's directories (absolute where no
     relative path exists, as across drives)."""
     try:
-        return os.path.relpath(os.path.abspath(path), os.path.abspath(out))
+        return os.path.relpath(path, out)  # takes both relative to the working directory
     except ValueError:
         return os.path.abspath(path)
 
