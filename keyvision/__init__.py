@@ -20,6 +20,7 @@ from ._data import (
     PlanarCamera as PlanarCamera,
     cache_directory as cache_directory,
 )
+from ._distil import distil_shifts as distil_shifts, shift_average as shift_average
 from ._estimator import (
     AbstractKeypointEstimator as AbstractKeypointEstimator,
     KeypointEstimator as KeypointEstimator,

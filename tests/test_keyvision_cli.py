@@ -13,13 +13,14 @@ import pytest
 import cldyn
 from keyvision._cli import main
 
-COMMANDS = ("render", "train", "evaluate", "control", "identify")
+COMMANDS = ("render", "train", "distil", "evaluate", "control", "identify")
 VPT_TOL = 1e-12  # a fraction of frames, recomputed from the recorded errors
 
 # command -> (arguments with one invalid value, the option the error must name)
 BAD_ARGUMENTS = {
     "render": (["--scene", "keycld/pendulum", "--out", "{tmp}/r", "--runs", "0"], "--runs"),
     "train": (["--data", "{tmp}/d", "--out", "{tmp}/t", "--width", "-8"], "--width"),
+    "distil": (["--model", "{tmp}/m", "--data", "{tmp}/d", "--out", "{tmp}/o", "--steps", "0"], "--steps"),
     "evaluate": (["--model", "{tmp}/m", "--data", "{tmp}/d", "--out", "{tmp}/e", "--batch", "x"], "--batch"),
     "control": (["--model", "{tmp}/m", "--out", "{tmp}/c", "--runs", "0"], "--runs"),
     "identify": (["--model", "{tmp}/m", "--data", "{tmp}/d", "--out", "{tmp}/i", "--effects", "x"],
@@ -69,6 +70,7 @@ def test_a_bad_argument_is_one_error_line_and_creates_nothing(command, tmp_path,
         (["train", "--data", "{tmp}/missing.npz", "--resume", "--overwrite"], "give one"),
         (["evaluate", "--model", "{tmp}/missing", "--data", "{tmp}/missing.npz"], "no such directory"),
         (["control", "--model", "{tmp}/missing"], "no such directory"),
+        (["distil", "--model", "{tmp}/missing", "--data", "{tmp}/missing.npz"], "no such file"),
         (["identify", "--model", "{tmp}/missing", "--data", "{tmp}/missing.npz"], "no such file"),
     ],
 )

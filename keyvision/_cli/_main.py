@@ -8,9 +8,9 @@ import argparse
 
 from cldyn._cli._main import main as _cldyn_main
 
-from . import _control, _demo, _evaluate, _identify, _render, _train
+from . import _control, _demo, _distil, _evaluate, _identify, _render, _train
 
-_COMMANDS = (_render, _train, _evaluate, _control, _identify, _demo)
+_COMMANDS = (_render, _train, _distil, _evaluate, _control, _identify, _demo)
 
 
 def build_parser() -> argparse.ArgumentParser:
