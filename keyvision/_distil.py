@@ -58,16 +58,15 @@ def shift_average(estimator: AbstractKeypointEstimator, images: Array, phases: i
     check_positive("shift_average: phases", phases, integer=True)
     if images.ndim != 4:
         raise ValueError(f"shift_average: images must be (B, H, W, C), got shape {images.shape}")
-    grid = jnp.arange(phases)
-    dy, dx = (a.ravel() for a in jnp.meshgrid(grid, grid, indexing="ij"))
-
-    def one(a, b):
-        count = images.shape[0]
-        fill = lambda v: jnp.full((count,), v)  # noqa: E731
-        shifted = _shift(images, fill(a), fill(b), phases)
-        return jax.vmap(estimator)(shifted) - _moves(fill(a), fill(b), images.shape[1], images.dtype)
-
-    return jnp.mean(jax.lax.map(lambda ab: one(*ab), (dy, dx)), axis=0)
+    count, size = images.shape[0], images.shape[1]
+    padded = jnp.pad(images, ((0, 0), (phases, phases), (phases, phases), (0, 0)), mode="edge")
+    shifts = [(a, b) for a in range(phases) for b in range(phases)]
+    # one batch of every shifted copy through the estimator, unrolled: XLA's CPU backend runs
+    # convolutions inside a compiled loop several times slower
+    crops = [padded[:, phases - a : phases - a + size, phases - b : phases - b + size] for a, b in shifts]
+    readings = jax.vmap(estimator)(jnp.concatenate(crops)).reshape(len(shifts), count, -1, 2)
+    dy, dx = (jnp.asarray([shift[axis] for shift in shifts]) for axis in (0, 1))
+    return jnp.mean(readings - _moves(dy, dx, size, images.dtype)[:, None], axis=0)
 
 
 def distil_shifts(
