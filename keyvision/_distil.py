@@ -99,7 +99,8 @@ def distil_shifts(
 
     **Returns:** `(model, report)`: the model with the fine-tuned estimator, and the root mean square
     distance (frame units) of the estimator's one-pass reading from the teacher's over the frames,
-    before and after.
+    before and after. A loss that is not finite raises `FloatingPointError` naming the step (the
+    model passed in is left as it was).
     """
     if not isinstance(model, KeyCLD):
         raise TypeError(f"distil_shifts: model must be a keyvision.KeyCLD, got {type(model).__name__}")

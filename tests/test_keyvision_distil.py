@@ -1,6 +1,7 @@
 """Shift distillation: the phase average against closed forms (an equivariant reading is unchanged, a
 staircase reading becomes a line), and the distillation bringing one pass onto the average."""
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -112,6 +113,10 @@ def test_distillation_names_bad_frames():
         keyvision.distil_shifts(model, np.zeros((4, 32, 32, 3), np.uint8), key=jax.random.key(0), steps=1)
     with pytest.raises(ValueError, match="NaN"):
         keyvision.distil_shifts(model, np.full((4, SIZE, SIZE, 3), np.nan), key=jax.random.key(0), steps=1)
+    head = model.estimator.unet.head
+    broken = eqx.tree_at(lambda m: m.estimator.unet.head.bias, model, jnp.full_like(head.bias, jnp.nan))
+    with pytest.raises(FloatingPointError, match="not finite at step 0"):
+        keyvision.distil_shifts(broken, _disc_frames(8), key=jax.random.key(0), steps=2, batch_size=4)
     with pytest.raises(TypeError, match="KeyCLD"):
         keyvision.distil_shifts(model.estimator, np.zeros((4, SIZE, SIZE, 3)), key=jax.random.key(0), steps=1)
 
