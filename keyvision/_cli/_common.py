@@ -53,3 +53,18 @@ def other_scene(frames, spec: dict) -> str:
     if not seen or not trained_on or seen == trained_on:
         return ""
     return f" (frames of {seen}; the model was trained on {trained_on})"
+
+
+def model_and_frames(directory: str, data_path: pathlib.Path):
+    """`(model, spec, frames)`: the model of `--model` and the frames of `--data`, checked to be of
+    the model's size (the error names both scenes where they differ)."""
+    import keyvision
+
+    model, spec = load_model(directory, "--model")
+    frames = keyvision.Frames.load(data_path)
+    if frames.image_size != (model.image_size, model.image_size):
+        raise CommandError(
+            f"--data: frames of {frames.image_size} pixels; the model takes {model.image_size} x "
+            f"{model.image_size}" + other_scene(frames, spec)
+        )
+    return model, spec, frames

@@ -16,7 +16,7 @@ from cldyn._cli._common import (
 )
 
 from .._files import MODEL_NAME, SPEC_NAME
-from ._common import frames_file, other_scene
+from ._common import frames_file
 
 
 def register(subparsers) -> None:
@@ -55,15 +55,9 @@ def run(args: argparse.Namespace) -> int:
     import cldyn
     import keyvision
 
-    from ._common import load_model
+    from ._common import model_and_frames
 
-    model, spec = load_model(args.model, "--model")
-    frames = keyvision.Frames.load(data_path)
-    if frames.image_size != (model.image_size, model.image_size):
-        raise CommandError(
-            f"--data: frames of {frames.image_size} pixels; the model takes {model.image_size} x "
-            f"{model.image_size}" + other_scene(frames, spec)
-        )
+    model, spec, frames = model_and_frames(args.model, data_path)
     train, _ = frames.split()
     if not train.num_runs:
         raise CommandError(f"--data {data_path}: all {frames.num_runs} runs are for validation")

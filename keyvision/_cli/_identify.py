@@ -67,15 +67,9 @@ def run(args: argparse.Namespace) -> int:
     import keyvision
     from cldyn._misc import atomic_write
 
-    from ._common import load_model
+    from ._common import model_and_frames
 
-    model, spec = load_model(args.model, "--model")
-    frames = keyvision.Frames.load(data_path)
-    if frames.image_size != (model.image_size, model.image_size):
-        raise CommandError(
-            f"--data: frames of {frames.image_size} pixels; the model takes {model.image_size} x "
-            f"{model.image_size}" + other_scene(frames, spec)
-        )
+    model, spec, frames = model_and_frames(args.model, data_path)
     # the model's inputs are the actuators of the scene it was trained on: the frames' controls are
     # placed by name (a scene may drive fewer joints, as dm_control's stock acrobot does)
     inputs = None
