@@ -2,6 +2,7 @@
 and how a model directory is rebuilt (its `keyvision.json` names every size, `model.eqx` holds the
 parameters)."""
 
+import os
 import pathlib
 
 from cldyn._cli._common import CommandError, input_file
@@ -68,3 +69,13 @@ def model_and_frames(directory: str, data_path: pathlib.Path):
             f"{model.image_size}" + other_scene(frames, spec)
         )
     return model, spec, frames
+
+
+def relative_path(path, out) -> str:
+    """`path` as `keyvision.json` records it: relative to the model's directory `out`, so that the
+    record holds wherever the two move together and names no machine's directories (absolute where no
+    relative path exists, as across drives)."""
+    try:
+        return os.path.relpath(path, out)  # takes both relative to the working directory
+    except ValueError:
+        return os.path.abspath(path)

@@ -3,7 +3,6 @@ pooling phases (`keyvision.distil_shifts`), written as a new model directory."""
 
 import argparse
 import json
-import os
 import pathlib
 
 from cldyn._cli._common import (
@@ -16,7 +15,7 @@ from cldyn._cli._common import (
 )
 
 from .._files import MODEL_NAME, SPEC_NAME
-from ._common import frames_file
+from ._common import frames_file, relative_path
 
 
 def register(subparsers) -> None:
@@ -70,14 +69,14 @@ def run(args: argparse.Namespace) -> int:
     )
     record = dict(spec)
     record["distilled"] = {
-        "from": os.path.relpath(pathlib.Path(args.model).resolve(), out.resolve()),
-        "data": os.path.relpath(data_path.resolve(), out.resolve()),
+        "from": relative_path(args.model, out),
+        "data": relative_path(data_path, out),
         "runs": len(runs), "steps": args.steps, "batch": args.batch, "learning_rate": args.lr,
         "seed": args.seed, **report,
     }
     if (spec.get("data") or {}).get("file"):  # the training data, relative to the new directory
-        trained_on = (pathlib.Path(args.model) / spec["data"]["file"]).resolve()
-        record["data"] = {**spec["data"], "file": os.path.relpath(trained_on, out.resolve())}
+        trained_on = pathlib.Path(args.model) / spec["data"]["file"]
+        record["data"] = {**spec["data"], "file": relative_path(trained_on, out)}
     keyvision.save_model(out, distilled, record)
     print(
         json.dumps({"out": str(out), "rms_before": report["rms_before"], "rms_after": report["rms_after"]})

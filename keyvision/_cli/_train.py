@@ -29,7 +29,7 @@ from cldyn._keycld import KEYCLD_SCENES, MODEL_KINDS
 
 from .._assign import CHOICE_NAME
 from .._files import INITIAL_NAME
-from ._common import MODEL_NAME, SPEC_NAME, frames_file
+from ._common import MODEL_NAME, SPEC_NAME, frames_file, relative_path
 
 _STAGE_FILES = (("checkpoint", "eqx"), ("history", "json"), ("model", "eqx"), ("keypoints", "npz"))
 _VALIDATION_RUNS = 4  # validated in one call at every checkpoint: a few runs suffice
@@ -346,16 +346,6 @@ def _networks_source(directory: str, spec: dict, frames) -> dict:
     }
 
 
-def _relative(path, out) -> str:
-    """`path` as `keyvision.json` records it: relative to the model's directory `out`, so that the
-    record holds wherever the two move together and names no machine's directories (absolute where no
-    relative path exists, as across drives)."""
-    try:
-        return os.path.relpath(path, out)  # takes both relative to the working directory
-    except ValueError:
-        return os.path.abspath(path)
-
-
 def _more_rounds(previous, schedule: dict) -> bool:
     """Whether `schedule` is the `previous` one with at least as many rounds, and nothing else changed."""
     if not isinstance(previous, dict) or not isinstance(previous.get("rounds"), int):
@@ -470,7 +460,7 @@ def run(args: argparse.Namespace) -> int:
     spec.update(
         seed=args.seed,
         data={
-            "file": _relative(data_path, out),
+            "file": relative_path(data_path, out),
             "scene": frames.info.get("scene"),
             "cache_key": frames.info.get("cache_key"),
             # the camera's samples per pixel side (keyvision.RenderProtocol): swing_up's default
@@ -480,7 +470,7 @@ def run(args: argparse.Namespace) -> int:
     )
     if source is not None:
         record = source["record"]
-        spec["networks_from"] = {**record, "directory": _relative(record["directory"], out)}
+        spec["networks_from"] = {**record, "directory": relative_path(record["directory"], out)}
     spec_path = out / SPEC_NAME
     if args.resume and spec_path.is_file():
         try:
@@ -493,7 +483,7 @@ def run(args: argparse.Namespace) -> int:
         for entry, name in (("data", "file"), ("networks_from", "directory")):
             recorded = previous.get(entry) if isinstance(previous.get(entry), dict) else {}
             if isinstance(recorded.get(name), str) and os.path.isabs(recorded[name]):
-                previous[entry] = {**recorded, name: _relative(recorded[name], out)}
+                previous[entry] = {**recorded, name: relative_path(recorded[name], out)}
         if isinstance(previous.get("schedule"), dict):  # a field added since: it held its default then
             defaults = for_dynamics(keyvision.Schedule(), model.dynamics).describe()
             previous["schedule"] = {**defaults, **previous["schedule"]}
