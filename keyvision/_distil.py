@@ -21,6 +21,7 @@ import cldyn
 from cldyn._misc import check_positive
 from cldyn._steps import optax_promotion
 
+from ._control import _as_images as as_images
 from ._estimator import AbstractKeypointEstimator
 from ._model import KeyCLD
 from ._train import _clipped_adam
@@ -114,16 +115,10 @@ def distil_shifts(
             f"distil_shifts: frames must be (..., {size}, {size}, {channels}) for this model, "
             f"got shape {frames.shape}"
         )
-    if frames.dtype == np.uint8:
-        scale = 1.0 / 255
-    elif np.issubdtype(frames.dtype, np.floating):
-        scale = 1.0
-    else:
-        raise TypeError(f"distil_shifts: frames must be uint8 or floating, got {frames.dtype}")
     frames = frames.reshape(-1, size, size, channels)
     if not np.all(np.isfinite(frames)):
         raise ValueError("distil_shifts: frames contain NaN or infinite values")
-    as_images = lambda batch: jnp.asarray(batch, jnp.float32) * scale  # noqa: E731
+    as_images(frames[:1])  # refuses a dtype other than uint8 and floating before any work
     chunk = 16
 
     teach = eqx.filter_jit(lambda e, b: shift_average(e, as_images(b), phases))
