@@ -32,7 +32,7 @@ os.environ.setdefault("MUJOCO_GL", "egl")
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "benchmarks"))
-from _common import RESULTS, machine, write  # noqa: E402
+from _common import RESULTS, machine, repo_path, write  # noqa: E402
 
 PAPER_VPT = {"pendulum": 0.38, "cartpole": 1.00, "acrobot": 1.00}  # Table 1, KeyCLD
 
@@ -140,7 +140,7 @@ def scene(source: str, args) -> dict:
         shutil.copyfile(evaluation / figure, RESULTS / f"vision_{name}_{figure}")
     return {
         "scene": name,
-        "model": str(model),
+        "model": repo_path(model),
         "vpt": vpt["vpt"],
         "autoencoder": vpt.get("autoencoder"),
         "paper_vpt": PAPER_VPT.get(name),

@@ -50,7 +50,7 @@ import numpy as np  # noqa: E402
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "benchmarks"))
-from _common import RESULTS, machine, write  # noqa: E402
+from _common import RESULTS, machine, repo_path, write  # noqa: E402
 from _table_figures import errors, plot_frames, plot_mse  # noqa: E402
 from vision import _cli, add_recipe, recipe_options  # noqa: E402
 
@@ -157,7 +157,7 @@ def _train_and_evaluate(model: pathlib.Path, data: pathlib.Path, options: list, 
     trained_on = model / "device.json"
     on = json.loads(trained_on.read_text()) if trained_on.is_file() else None
     return {
-        "model": str(model),
+        "model": repo_path(model),
         "seconds": round(_seconds(model), 1),
         "trained_on": on,
         "stopped": note,

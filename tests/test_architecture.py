@@ -4,10 +4,13 @@
 - no function takes more than 8 positional parameters (the rest are keyword-only);
 - only the command line (`cldyn/_cli/`) switches JAX to 64-bit mode;
 - `import cldyn` imports none of the optional extras (MuJoCo, matplotlib, tqdm).
+- no committed result or model file names a path on the machine that wrote it (a clone elsewhere
+  must read the same).
 """
 
 import ast
 import pathlib
+import re
 import subprocess
 import sys
 
@@ -64,3 +67,19 @@ def test_importing_cldyn_imports_no_optional_extra():
     )
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True, cwd=ROOT)
     assert out.stdout.strip() == "[]", out.stdout
+
+
+# a path that only the machine that wrote a result has: a home, a scratch or a checkout directory
+_MACHINE_PATH = re.compile(r'"(/(?:work|root|home|tmp|Users)/[^"]*)"')
+
+
+def test_results_name_no_path_of_the_machine_that_wrote_them():
+    files = [
+        *(ROOT / "benchmarks" / "results").rglob("*.json"),
+        *(ROOT / "keyvision" / "demo").rglob("*.json"),
+    ]
+    assert len(files) > 20  # the walk sees the results
+    found = {
+        str(path.relative_to(ROOT)): _MACHINE_PATH.findall(path.read_text()) for path in sorted(files)
+    }
+    assert {name: paths for name, paths in found.items() if paths} == {}
